@@ -1,0 +1,157 @@
+"""Ellipses in the paper's form {z : ‖A z + b‖₂ ≤ 1} and the exact tests the planner relies on.
+
+A is symmetric positive definite. Writing A = R diag(1/a₁, 1/a₂) Rᵀ, the ellipse has semi-axes a₁, a₂
+along the columns of R and centre c = −A⁻¹ b. The map u = A z + b sends the ellipse to the unit disc,
+which turns every question below (inside? does a segment cross it? tangents from a point?) into the
+same question about the unit circle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Ellipse:
+    """One ellipse {z : ‖A z + b‖₂ ≤ 1}."""
+
+    A: FloatArray
+    b: FloatArray
+
+    def __post_init__(self) -> None:
+        A = np.asarray(self.A, dtype=float).reshape(2, 2)
+        b = np.asarray(self.b, dtype=float).reshape(2)
+        A = 0.5 * (A + A.T)
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+            raise ValueError("ellipse parameters must be finite")
+        if np.linalg.eigvalsh(A)[0] <= 0.0:
+            raise ValueError("ellipse shape matrix A must be positive definite")
+        object.__setattr__(self, "A", A)
+        object.__setattr__(self, "b", b)
+
+    @classmethod
+    def from_axes(cls, *, center: ArrayLike, semi_axes: ArrayLike, angle_rad: float = 0.0) -> Ellipse:
+        """Ellipse with the given centre, semi-axes (a₁ along angle_rad, a₂ across) and orientation."""
+        c, s = np.cos(angle_rad), np.sin(angle_rad)
+        R = np.array([[c, -s], [s, c]])
+        A = R @ np.diag(1.0 / np.asarray(semi_axes, dtype=float)) @ R.T
+        return cls(A=A, b=-A @ np.asarray(center, dtype=float))
+
+    @classmethod
+    def circle(cls, *, center: ArrayLike, radius: float) -> Ellipse:
+        return cls.from_axes(center=center, semi_axes=(radius, radius))
+
+    @property
+    def center(self) -> FloatArray:
+        return -np.linalg.solve(self.A, self.b)
+
+    @property
+    def semi_axes(self) -> FloatArray:
+        """Semi-axes, largest first."""
+        return 1.0 / np.linalg.eigvalsh(self.A)
+
+    @property
+    def rotation(self) -> FloatArray:
+        """Columns are the axis directions, in the order of `semi_axes`."""
+        return np.linalg.eigh(self.A)[1]
+
+    @property
+    def area(self) -> float:
+        return float(np.pi / np.linalg.det(self.A))
+
+    def grown(self, margin_m: float) -> Ellipse:
+        """The ellipse with every semi-axis longer by `margin_m`.
+
+        It contains the Minkowski sum of this ellipse with a disc of radius `margin_m`: the offset curve
+        of an ellipse at distance r lies inside the ellipse with semi-axes a₁ + r, a₂ + r.
+        """
+        w, R = np.linalg.eigh(self.A)
+        A = R @ np.diag(1.0 / (1.0 / w + margin_m)) @ R.T
+        return Ellipse(A=A, b=-A @ self.center)
+
+    def level(self, points: ArrayLike) -> FloatArray:
+        """‖A z + b‖ for each point (≤ 1 inside): the paper's eq. (2) for a set of points."""
+        z = np.atleast_2d(np.asarray(points, dtype=float))
+        return np.linalg.norm(z @ self.A.T + self.b, axis=1)
+
+    def boundary(self, n: int = 64) -> FloatArray:
+        """`n` points evenly spaced in angle on the boundary."""
+        t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+        u = np.column_stack([np.cos(t), np.sin(t)])
+        return np.linalg.solve(self.A, (u - self.b).T).T
+
+    def tangent_points(self, point: ArrayLike) -> FloatArray | None:
+        """The two points where lines through an outside `point` touch the ellipse; None from inside."""
+        q = self.A @ np.asarray(point, dtype=float) + self.b
+        r = float(np.hypot(*q))
+        if r <= 1.0:
+            return None
+        phi = np.arctan2(q[1], q[0])
+        half = np.arccos(1.0 / r)
+        angles = np.array([phi - half, phi + half])
+        u = np.column_stack([np.cos(angles), np.sin(angles)])
+        return np.linalg.solve(self.A, (u - self.b).T).T
+
+    def to_dict(self) -> dict[str, list]:
+        return {"A": self.A.tolist(), "b": self.b.tolist()}
+
+
+@dataclass(frozen=True, eq=False)
+class EllipseStack:
+    """Many ellipses stacked for vectorised tests: A is (m, 2, 2), b is (m, 2)."""
+
+    A: FloatArray
+    b: FloatArray
+
+    @classmethod
+    def of(cls, ellipses: list[Ellipse]) -> EllipseStack:
+        if not ellipses:
+            return cls(A=np.zeros((0, 2, 2)), b=np.zeros((0, 2)))
+        return cls(A=np.stack([e.A for e in ellipses]), b=np.stack([e.b for e in ellipses]))
+
+    def __len__(self) -> int:
+        return self.A.shape[0]
+
+    def levels(self, points: ArrayLike) -> FloatArray:
+        """‖Aⱼ zᵢ + bⱼ‖ as an (n_points, m) array."""
+        z = np.atleast_2d(np.asarray(points, dtype=float))
+        u = np.einsum("mij,nj->nmi", self.A, z) + self.b[None, :, :]
+        return np.linalg.norm(u, axis=2)
+
+    def segment_levels(self, starts: ArrayLike, ends: ArrayLike) -> FloatArray:
+        """min over t ∈ [0, 1] of ‖Aⱼ (p + t (q − p)) + bⱼ‖ for each segment p→q: (n_segments, m).
+
+        The paper's eq. (2) checked on the whole continuous segment rather than at sample points: in
+        the unit-disc frame the segment is u₀ + t v, and ‖u₀ + t v‖² is a parabola in t whose minimum
+        on [0, 1] is at t* = clip(−u₀·v / ‖v‖², 0, 1). A value below 1 means the segment enters the
+        ellipse.
+        """
+        p = np.atleast_2d(np.asarray(starts, dtype=float))
+        q = np.atleast_2d(np.asarray(ends, dtype=float))
+        u0 = np.einsum("mij,nj->nmi", self.A, p) + self.b[None, :, :]
+        v = np.einsum("mij,nj->nmi", self.A, q - p)
+        vv = np.einsum("nmi,nmi->nm", v, v)
+        t = np.clip(-np.einsum("nmi,nmi->nm", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
+        closest = u0 + t[:, :, None] * v
+        return np.linalg.norm(closest, axis=2)
+
+
+def polyline_length(points: ArrayLike) -> float:
+    z = np.asarray(points, dtype=float)
+    return float(np.sum(np.linalg.norm(np.diff(z, axis=0), axis=1)))
+
+
+def resample_polyline(points: ArrayLike, *, max_spacing_m: float) -> FloatArray:
+    """The same polyline with extra vertices so that no two neighbours are more than `max_spacing_m` apart."""
+    z = np.asarray(points, dtype=float)
+    out = [z[:1]]
+    for p, q in zip(z[:-1], z[1:]):
+        n = max(1, int(np.ceil(np.linalg.norm(q - p) / max_spacing_m)))
+        t = np.arange(1, n + 1)[:, None] / n
+        out.append(p + t * (q - p))
+    return np.concatenate(out)
