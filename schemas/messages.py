@@ -1,0 +1,227 @@
+"""The messages the cvxnav stages exchange over Zenoh (CONTRACTS.md §5).
+
+Every top-level message is a frozen pydantic model that rejects unknown fields and non-finite
+numbers, and carries a namespaced, versioned schema name (``SCHEMA``/``VERSION``) that travels in
+the Zenoh encoding as ``application/json;cvxnav.<Model>/<version>``. Changing a model's fields is a
+versioned change: bump ``VERSION``.
+
+Ellipsoids are in the paper's form {z : ||A z + b||_2 <= 1} with A symmetric positive definite.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, ClassVar, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+# A world-frame point [x, y] in metres; JSON carries it as a two-element array.
+Point = tuple[float, float]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+Status = Literal["ok", "no_path"]
+
+_SYMMETRY_RTOL = 1e-9
+
+
+class _Frozen(BaseModel):
+    """Shared config: immutable, no unknown fields, finite floats only (also inside lists)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class Message(_Frozen):
+    """A top-level message: one per Zenoh key, named and versioned."""
+
+    SCHEMA: ClassVar[str]
+    VERSION: ClassVar[int]
+
+    @classmethod
+    def schema_id(cls) -> str:
+        """``cvxnav.<Model>/<version>``: the schema suffix of the Zenoh encoding."""
+        return f"{cls.SCHEMA}/{cls.VERSION}"
+
+    @classmethod
+    def encoding(cls) -> str:
+        """The Zenoh encoding string, e.g. ``application/json;cvxnav.Scan/1``."""
+        return f"application/json;{cls.schema_id()}"
+
+    def to_json_bytes(self) -> bytes:
+        return self.model_dump_json().encode()
+
+
+class Header(_Frozen):
+    """Stamp of a message: sim time in seconds, frame, and the publisher's sequence number."""
+
+    stamp_s: float = Field(ge=0.0)
+    frame_id: str = "map"
+    seq: NonNegativeInt
+
+
+class Pose2D(_Frozen):
+    x_m: float
+    y_m: float
+    theta_rad: float
+
+
+class Scan(Message):
+    """Range-sensor hits in the world frame, taken from ``pose`` (the point cap is stage config)."""
+
+    SCHEMA: ClassVar[str] = "cvxnav.Scan"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    pose: Pose2D
+    points: list[Point]
+
+
+class ClusterMsg(_Frozen):
+    cluster_id: int
+    points: list[Point] = Field(min_length=1)
+    solid: bool = False
+
+
+class Clusters(Message):
+    SCHEMA: ClassVar[str] = "cvxnav.Clusters"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scan_seq: NonNegativeInt
+    clusters: list[ClusterMsg]
+
+
+class EllipsoidMsg(_Frozen):
+    """{z : ||A z + b||_2 <= 1}; A must be symmetric positive definite (a bounded, solid ellipse)."""
+
+    A: tuple[Point, Point]
+    b: Point
+    group: int
+    cluster_id: int
+
+    @field_validator("A")
+    @classmethod
+    def _symmetric_positive_definite(cls, a: tuple[Point, Point]) -> tuple[Point, Point]:
+        (a11, a12), (a21, a22) = a
+        scale = max(abs(a11), abs(a12), abs(a21), abs(a22))
+        if abs(a12 - a21) > _SYMMETRY_RTOL * scale:
+            raise ValueError(f"A must be symmetric, got A12={a12!r} != A21={a21!r}")
+        # Sylvester's criterion for a symmetric 2x2 matrix.
+        if not (a11 > 0.0 and a11 * a22 - a12 * a21 > 0.0):
+            raise ValueError("A must be positive definite")
+        return a
+
+
+class Ellipsoids(Message):
+    SCHEMA: ClassVar[str] = "cvxnav.Ellipsoids"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scan_seq: NonNegativeInt
+    inflation_m: float = Field(ge=0.0)
+    ellipsoids: list[EllipsoidMsg]
+
+
+class RawPath(Message):
+    """The planner's piecewise-linear path, with the ellipsoids it avoided so the smoother can verify."""
+
+    SCHEMA: ClassVar[str] = "cvxnav.RawPath"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scan_seq: NonNegativeInt
+    status: Status
+    goal_index: NonNegativeInt
+    points: list[Point]
+    ellipsoids: list[EllipsoidMsg]
+
+
+class SmoothPath(Message):
+    """The smoothed centre line; ``min_level`` = min over the curve of ||A z + b|| (> 1 is clear)."""
+
+    SCHEMA: ClassVar[str] = "cvxnav.SmoothPath"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scan_seq: NonNegativeInt
+    status: Status
+    goal_index: NonNegativeInt
+    points: list[Point]
+    max_curvature: float = Field(ge=0.0)
+    min_level: float
+
+
+class RobotState(Message):
+    SCHEMA: ClassVar[str] = "cvxnav.RobotState"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    pose: Pose2D
+    speed_mps: float
+    steering_rad: float
+    goal_index: NonNegativeInt
+    goals_reached: NonNegativeInt
+    done: bool
+
+
+class StageStatus(Message):
+    """Published by every stage after each input: ``error`` names what was rejected and why."""
+
+    SCHEMA: ClassVar[str] = "cvxnav.StageStatus"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    stage: str
+    state: Literal["ok", "error"]
+    reason: str = ""
+    input_key: str | None = None
+    processing_ms: float = Field(ge=0.0)
+
+
+MESSAGE_MODELS: tuple[type[Message], ...] = (
+    Scan,
+    Clusters,
+    Ellipsoids,
+    RawPath,
+    SmoothPath,
+    RobotState,
+    StageStatus,
+)
+
+
+M = TypeVar("M", bound=Message)
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message of the expected schema; the text is one line."""
+
+
+def _schema_suffix(encoding: str) -> str | None:
+    _, sep, schema = encoding.partition(";")
+    return schema if sep else None
+
+
+def _one_line(error: ValidationError) -> str:
+    errors = error.errors(include_url=False)
+    first = errors[0]
+    if first["type"] == "json_invalid":
+        return f"invalid JSON: {first['ctx']['error']}"
+    field = ".".join(str(part) for part in first["loc"]) or "<root>"
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{field}: {first['msg']}{more}"
+
+
+def decode(model_cls: type[M], payload: bytes, *, encoding: str | None = None) -> M:
+    """Validate ``payload`` as ``model_cls``; raise ``DecodeError`` with a one-line reason.
+
+    When the sender's Zenoh ``encoding`` names a cvxnav schema, it must be this model's schema and
+    version; a payload without a schema suffix is judged by its content alone.
+    """
+    schema = _schema_suffix(encoding) if encoding else None
+    if schema is not None and schema.startswith("cvxnav.") and schema != model_cls.schema_id():
+        raise DecodeError(f"wrong schema: expected {model_cls.schema_id()}, got {schema}")
+    try:
+        return model_cls.model_validate_json(payload)
+    except ValidationError as error:
+        raise DecodeError(f"{model_cls.schema_id()}: {_one_line(error)}") from None
+
+
+def encode(message: Message) -> bytes:
+    return message.to_json_bytes()

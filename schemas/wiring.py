@@ -1,0 +1,107 @@
+"""The pipeline's one wiring table: which stage publishes which key carrying which model.
+
+Keys are relative to a prefix (default ``cvxnav/robot1``, CONTRACTS.md §5). Services, compose.yaml
+and the monitor read this table; no stage names a key of its own.
+
+    sim        --scan, state-->   sensing (scan), planner (state)
+    sensing    --clusters-->      ellipsoids
+    ellipsoids --ellipsoids-->    planner
+    planner    --raw_path-->      smoother
+    smoother   --smooth_path-->   sim
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping
+
+from schemas.messages import (
+    Clusters,
+    Ellipsoids,
+    Message,
+    RawPath,
+    RobotState,
+    Scan,
+    SmoothPath,
+    StageStatus,
+)
+
+DEFAULT_ROBOT_ID = "robot1"
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One key of the pipeline: its name relative to the prefix, its model and its one publisher."""
+
+    name: str
+    model: type[Message]
+    publisher: str
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What one stage reads and writes (topic names, in the order the stage handles them)."""
+
+    name: str
+    subscribes: tuple[str, ...]
+    publishes: tuple[str, ...]
+
+
+TOPICS: Mapping[str, Topic] = MappingProxyType(
+    {
+        topic.name: topic
+        for topic in (
+            Topic(name="scan", model=Scan, publisher="sim"),
+            Topic(name="state", model=RobotState, publisher="sim"),
+            Topic(name="clusters", model=Clusters, publisher="sensing"),
+            Topic(name="ellipsoids", model=Ellipsoids, publisher="ellipsoids"),
+            Topic(name="raw_path", model=RawPath, publisher="planner"),
+            Topic(name="smooth_path", model=SmoothPath, publisher="smoother"),
+        )
+    }
+)
+
+STAGES: Mapping[str, StageSpec] = MappingProxyType(
+    {
+        spec.name: spec
+        for spec in (
+            StageSpec(name="sim", subscribes=("smooth_path",), publishes=("scan", "state")),
+            StageSpec(name="sensing", subscribes=("scan",), publishes=("clusters",)),
+            StageSpec(name="ellipsoids", subscribes=("clusters",), publishes=("ellipsoids",)),
+            StageSpec(name="planner", subscribes=("ellipsoids", "state"), publishes=("raw_path",)),
+            StageSpec(name="smoother", subscribes=("raw_path",), publishes=("smooth_path",)),
+        )
+    }
+)
+
+STATUS_MODEL: type[Message] = StageStatus
+
+
+def default_prefix(*, robot_id: str = DEFAULT_ROBOT_ID) -> str:
+    return f"cvxnav/{robot_id}"
+
+
+def key(prefix: str, topic: str) -> str:
+    """The absolute Zenoh key of ``topic`` under ``prefix``; unknown topics are an error."""
+    if topic not in TOPICS:
+        raise KeyError(f"unknown topic {topic!r}; known: {', '.join(TOPICS)}")
+    return f"{prefix}/{topic}"
+
+
+def status_key(prefix: str, stage: str) -> str:
+    """Where ``stage`` publishes its ``StageStatus`` after every input."""
+    return f"{prefix}/status/{stage}"
+
+
+def alive_key(prefix: str, stage: str) -> str:
+    """The liveliness token ``stage`` holds while it runs."""
+    return f"{prefix}/alive/{stage}"
+
+
+def model_for(topic: str) -> type[Message]:
+    return TOPICS[topic].model
+
+
+def subscribers_of(topic: str) -> tuple[str, ...]:
+    return tuple(spec.name for spec in STAGES.values() if topic in spec.subscribes)

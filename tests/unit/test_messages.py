@@ -1,0 +1,168 @@
+"""Message models: JSON round trip, rejection of bad input, wiring table and schema export."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from pydantic import BaseModel, ValidationError
+
+from schemas.export import export_json_schemas
+from schemas.messages import (
+    MESSAGE_MODELS,
+    ClusterMsg,
+    Clusters,
+    DecodeError,
+    EllipsoidMsg,
+    Ellipsoids,
+    Header,
+    Pose2D,
+    RawPath,
+    RobotState,
+    Scan,
+    SmoothPath,
+    StageStatus,
+    decode,
+    encode,
+)
+from schemas.wiring import STAGES, TOPICS, alive_key, default_prefix, key, model_for, status_key
+
+HEADER = Header(stamp_s=1.5, seq=3)
+ELLIPSE = EllipsoidMsg(A=((2.0, 0.5), (0.5, 1.0)), b=(-1.0, 0.25), group=0, cluster_id=4)
+
+EXAMPLES: dict[type[BaseModel], BaseModel] = {
+    Scan: Scan(header=HEADER, pose=Pose2D(x_m=1.0, y_m=2.0, theta_rad=0.3), points=[(3.0, 4.0)]),
+    Clusters: Clusters(
+        header=HEADER,
+        scan_seq=3,
+        clusters=[ClusterMsg(cluster_id=4, points=[(3.0, 4.0), (3.1, 4.0)], solid=True)],
+    ),
+    Ellipsoids: Ellipsoids(header=HEADER, scan_seq=3, inflation_m=0.65, ellipsoids=[ELLIPSE]),
+    RawPath: RawPath(
+        header=HEADER, scan_seq=3, status="ok", goal_index=0,
+        points=[(0.0, 0.0), (10.0, 10.0)], ellipsoids=[ELLIPSE],
+    ),
+    SmoothPath: SmoothPath(
+        header=HEADER, scan_seq=3, status="no_path", goal_index=1, points=[],
+        max_curvature=0.0, min_level=1.2,
+    ),
+    RobotState: RobotState(
+        header=HEADER, pose=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0), speed_mps=0.5,
+        steering_rad=-0.1, goal_index=1, goals_reached=1, done=False,
+    ),
+    StageStatus: StageStatus(
+        header=HEADER, stage="planner", state="error", reason="solver failed",
+        input_key="cvxnav/robot1/ellipsoids", processing_ms=12.5,
+    ),
+}
+
+
+def test_every_model_has_an_example():
+    assert set(EXAMPLES) == set(MESSAGE_MODELS)
+
+
+@pytest.mark.parametrize("model", MESSAGE_MODELS, ids=lambda m: m.__name__)
+def test_json_round_trip(model):
+    message = EXAMPLES[model]
+    assert decode(model, encode(message), encoding=model.encoding()) == message
+
+
+@pytest.mark.parametrize("model", MESSAGE_MODELS, ids=lambda m: m.__name__)
+def test_encoding_names_schema_and_version(model):
+    assert model.encoding() == f"application/json;cvxnav.{model.__name__}/1"
+
+
+def test_models_are_frozen():
+    with pytest.raises(ValidationError):
+        HEADER.seq = 4  # type: ignore[misc]
+
+
+def _scan_json(**overrides) -> dict:
+    doc = json.loads(encode(EXAMPLES[Scan]))
+    doc.update(overrides)
+    return doc
+
+
+def test_decode_rejects_invalid_json():
+    with pytest.raises(DecodeError, match="invalid JSON"):
+        decode(Scan, b'{"header": ')
+
+
+def test_decode_rejects_nan_naming_the_field():
+    payload = json.dumps(_scan_json(points=[[1.0, math.nan]])).encode()
+    with pytest.raises(DecodeError, match=r"points\.0\.1: Input should be a finite number"):
+        decode(Scan, payload)
+
+
+def test_decode_rejects_unknown_field():
+    payload = json.dumps(_scan_json(extra_field=1)).encode()
+    with pytest.raises(DecodeError, match="extra_field"):
+        decode(Scan, payload)
+
+
+def test_decode_rejects_wrong_schema_by_encoding():
+    with pytest.raises(DecodeError, match="wrong schema: expected cvxnav.Scan/1, got cvxnav.Clusters/1"):
+        decode(Scan, encode(EXAMPLES[Clusters]), encoding=Clusters.encoding())
+
+
+def test_decode_rejects_wrong_schema_by_content():
+    with pytest.raises(DecodeError) as error:
+        decode(Scan, encode(EXAMPLES[Clusters]))
+    assert "\n" not in str(error.value)
+
+
+def test_decode_rejects_other_version():
+    with pytest.raises(DecodeError, match="wrong schema"):
+        decode(Scan, encode(EXAMPLES[Scan]), encoding="application/json;cvxnav.Scan/2")
+
+
+@pytest.mark.parametrize(
+    "matrix",
+    [((1.0, 0.2), (0.3, 1.0)), ((1.0, 2.0), (2.0, 1.0)), ((-1.0, 0.0), (0.0, -1.0)), ((0.0, 0.0), (0.0, 1.0))],
+    ids=["asymmetric", "indefinite", "negative-definite", "singular"],
+)
+def test_ellipsoid_matrix_must_be_spd(matrix):
+    with pytest.raises(ValidationError, match="A must be"):
+        EllipsoidMsg(A=matrix, b=(0.0, 0.0), group=0, cluster_id=0)
+
+
+def test_negative_stamp_and_empty_cluster_rejected():
+    with pytest.raises(ValidationError):
+        Header(stamp_s=-0.1, seq=0)
+    with pytest.raises(ValidationError):
+        ClusterMsg(cluster_id=0, points=[])
+
+
+def test_wiring_every_topic_has_its_publisher_and_a_subscriber():
+    for topic in TOPICS.values():
+        assert topic.name in STAGES[topic.publisher].publishes
+        assert any(topic.name in spec.subscribes for spec in STAGES.values())
+    for spec in STAGES.values():
+        for name in spec.publishes:
+            assert TOPICS[name].publisher == spec.name
+        for name in spec.subscribes:
+            assert name in TOPICS
+
+
+def test_wiring_keys():
+    prefix = default_prefix()
+    assert prefix == "cvxnav/robot1"
+    assert key(prefix, "raw_path") == "cvxnav/robot1/raw_path"
+    assert model_for("scan") is Scan
+    assert status_key(prefix, "planner") == "cvxnav/robot1/status/planner"
+    assert alive_key(prefix, "planner") == "cvxnav/robot1/alive/planner"
+    with pytest.raises(KeyError):
+        key(prefix, "nope")
+
+
+def test_export_json_schemas(tmp_path):
+    paths = export_json_schemas(tmp_path)
+    assert sorted(p.name for p in paths) == sorted(
+        f"cvxnav.{m.__name__}.v1.schema.json" for m in MESSAGE_MODELS
+    )
+    scan = json.loads((tmp_path / "cvxnav.Scan.v1.schema.json").read_text())
+    assert scan["title"] == "cvxnav.Scan/1"
+    assert scan["$id"].endswith("cvxnav.Scan/1")
+    assert scan["additionalProperties"] is False
+    assert set(scan["required"]) == {"header", "pose", "points"}
