@@ -1,0 +1,92 @@
+"""Range sensor: exact hits, field of view, range limit, seeded noise."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import shapely
+
+from sim.sensor import Circle, RangeSensor, RayTargets, cast_rays
+
+SENSOR = RangeSensor(fov_deg=180.0, range_m=5.0, rays=181)
+
+
+def test_square_ahead_is_hit_exactly_on_its_near_face() -> None:
+    # Square [3, 4] × [-0.5, 0.5], robot at the origin looking along +x.
+    square = shapely.box(3.0, -0.5, 4.0, 0.5)
+    hits = SENSOR.scan(x_m=0.0, y_m=0.0, theta_rad=0.0, obstacles=[square])
+    assert len(hits) > 0
+    np.testing.assert_allclose(hits[:, 0], 3.0, atol=1e-9)
+    assert np.all(np.abs(hits[:, 1]) <= 0.5 + 1e-9)
+    # The straight-ahead beam measures exactly 3 m.
+    ranges = SENSOR.ranges(x_m=0.0, y_m=0.0, theta_rad=0.0, obstacles=[square])
+    assert abs(ranges[90] - 3.0) < 1e-9
+    # Every hit lies at the beam's exact distance: range = 3 / cos(angle).
+    angles = SENSOR.ray_angles_rad(0.0)
+    seen = np.isfinite(ranges)
+    np.testing.assert_allclose(ranges[seen], 3.0 / np.cos(angles[seen]), atol=1e-9)
+    # Beams that miss are exactly the ones whose line passes beside the square's face.
+    assert np.array_equal(seen, np.abs(3.0 * np.tan(angles)) <= 0.5 + 1e-12)
+
+
+def test_box_behind_is_not_seen_with_180_degree_fov() -> None:
+    behind = shapely.box(-3.0, -0.5, -2.0, 0.5)
+    assert len(SENSOR.scan(x_m=0.0, y_m=0.0, theta_rad=0.0, obstacles=[behind])) == 0
+    # Turned around, the same box is seen.
+    hits = SENSOR.scan(x_m=0.0, y_m=0.0, theta_rad=math.pi, obstacles=[behind])
+    np.testing.assert_allclose(hits[:, 0], -2.0, atol=1e-9)
+
+
+def test_hits_stay_within_the_field_of_view() -> None:
+    narrow = RangeSensor(fov_deg=60.0, range_m=10.0, rays=61)
+    ring = shapely.Point(0.0, 0.0).buffer(4.0).difference(shapely.Point(0.0, 0.0).buffer(3.0))
+    theta = 0.7
+    hits = narrow.scan(x_m=0.0, y_m=0.0, theta_rad=theta, obstacles=[ring])
+    assert len(hits) == 61  # the ring surrounds the robot: every beam hits the inner wall
+    bearing = np.arctan2(hits[:, 1], hits[:, 0]) - theta
+    assert np.all(np.abs(bearing) <= math.radians(30.0) + 1e-12)
+
+
+def test_obstacle_beyond_range_is_not_seen() -> None:
+    far = shapely.box(6.0, -1.0, 7.0, 1.0)
+    assert len(SENSOR.scan(x_m=0.0, y_m=0.0, theta_rad=0.0, obstacles=[far])) == 0
+    assert len(SENSOR.scan(x_m=1.5, y_m=0.0, theta_rad=0.0, obstacles=[far])) > 0
+
+
+def test_circle_hit_distance_matches_the_analytic_value() -> None:
+    circle = Circle(center=(4.0, 1.0), radius_m=0.75)
+    angles = np.linspace(-0.4, 0.6, 41)
+    ranges = cast_rays(origin=(0.0, 0.0), angles_rad=angles, targets=RayTargets.of([circle]))
+    # Analytic: with ray direction d, t = d·c − sqrt((d·c)² − |c|² + r²) where the root is real.
+    d = np.column_stack([np.cos(angles), np.sin(angles)])
+    dc = d @ np.array([4.0, 1.0])
+    disc = dc**2 - 17.0 + 0.75**2
+    expected = np.where(disc >= 0, dc - np.sqrt(np.maximum(disc, 0)), np.inf)
+    assert np.isfinite(expected).sum() > 5 and np.isinf(expected).sum() > 5
+    np.testing.assert_allclose(ranges[np.isfinite(expected)], expected[np.isfinite(expected)], atol=1e-9)
+    assert np.array_equal(np.isfinite(ranges), np.isfinite(expected))
+    # Straight at the centre: |c| − r.
+    straight = cast_rays(origin=(0.0, 0.0), angles_rad=np.array([math.atan2(1.0, 4.0)]),
+                         targets=RayTargets.of([circle]))
+    assert abs(straight[0] - (math.sqrt(17.0) - 0.75)) < 1e-12
+
+
+def test_nearest_surface_wins_among_several_obstacles() -> None:
+    obstacles = [shapely.box(4.0, -1.0, 5.0, 1.0), Circle(center=(2.5, 0.0), radius_m=0.5)]
+    ranges = cast_rays(origin=(0.0, 0.0), angles_rad=np.array([0.0]), targets=RayTargets.of(obstacles))
+    assert abs(ranges[0] - 2.0) < 1e-12
+
+
+def test_noise_is_reproducible_with_the_same_seed() -> None:
+    noisy = RangeSensor(fov_deg=180.0, range_m=5.0, rays=181, noise_std_m=0.02)
+    square = shapely.box(3.0, -1.0, 4.0, 1.0)
+    kwargs = dict(x_m=0.0, y_m=0.0, theta_rad=0.0, obstacles=[square])
+    a = noisy.scan(**kwargs, rng=np.random.default_rng(7))
+    b = noisy.scan(**kwargs, rng=np.random.default_rng(7))
+    c = noisy.scan(**kwargs, rng=np.random.default_rng(8))
+    clean = noisy.scan(**kwargs)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert not np.array_equal(a, clean)
+    assert np.max(np.abs(a[:, 0] - 3.0)) < 0.2
