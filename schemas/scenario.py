@@ -1,0 +1,399 @@
+"""The scenario file `cvxnav.scenario/1` (CONTRACTS §1) as frozen pydantic models, with true geometry.
+
+Everything a stage needs to know about the world is validated here once: a scenario that loads is finite,
+non-degenerate, and has its start and goals in free space inside the bounds. Obstacle geometry is the
+*true* solid (no inflation); planners grow it by `Scenario.inflation_m` themselves.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import json
+import math
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from shapely.geometry.base import BaseGeometry
+
+FloatArray = NDArray[np.float64]
+
+SCENARIO_FORMAT = "cvxnav.scenario/1"
+BUNDLED_SCENARIO = "paper-two-goals.json"
+
+Vec2 = tuple[float, float]
+"""A point [x, y] in metres; finiteness comes from the model config (`allow_inf_nan=False`)."""
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be used; `str()` is one line naming the file, the field and the reason."""
+
+
+class FieldError(ValueError):
+    """A validator's complaint about a field below the one pydantic is validating.
+
+    pydantic keeps the raised exception in the error's `ctx`, so `format_validation_error` can append
+    `loc` to pydantic's own location and name the exact field (e.g. `goals[1]`) in the message.
+    """
+
+    def __init__(self, loc: tuple[str | int, ...], message: str) -> None:
+        super().__init__(message)
+        self.loc = loc
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Error formatting, shared with schemas.files
+# ---------------------------------------------------------------------------------------------------
+
+_OBSTACLE_TAGS = frozenset({"polygon", "circle", "points"})
+
+
+def format_loc(loc: tuple[str | int, ...]) -> str:
+    """`('obstacles', 1, 'vertices', 0)` -> `obstacles[1].vertices[0]`."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
+    return out
+
+
+def _clean_loc(loc: tuple[str | int, ...]) -> tuple[str | int, ...]:
+    """Drop the tag level pydantic inserts after a discriminated-union member: `obstacles[1].polygon`."""
+    out: list[str | int] = []
+    for i, part in enumerate(loc):
+        if i >= 2 and part in _OBSTACLE_TAGS and isinstance(loc[i - 1], int) and loc[i - 2] == "obstacles":
+            continue
+        out.append(part)
+    return tuple(out)
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """The first error of a ValidationError as one line `field.path: reason` (+ how many more)."""
+    errors = err.errors()
+    first = errors[0]
+    loc = _clean_loc(tuple(first["loc"]))
+    cause = first.get("ctx", {}).get("error")
+    if first["type"] == "extra_forbidden":
+        where = format_loc(loc[:-1]) or "top level"
+        line = f"unknown field '{loc[-1]}' at {where}"
+    else:
+        if isinstance(cause, FieldError):
+            loc = loc + cause.loc
+            reason = str(cause)
+        elif isinstance(cause, ValueError):
+            reason = str(cause)
+        else:
+            reason = first["msg"]
+        path = format_loc(loc)
+        line = f"{path}: {reason}" if path else reason
+    if len(errors) > 1:
+        line += f" (and {len(errors) - 1} more)"
+    return " ".join(line.split())
+
+
+def parse_json_model(model: type[BaseModel], text: str | bytes, *, source: str, error: type[ValueError]) -> Any:
+    """Validate JSON text against `model`, turning every failure into one `error` line prefixed by `source`.
+
+    The text goes through `json.loads` first so that invalid JSON is reported with line and column, and so
+    that `NaN` / `Infinity` literals reach the model and are rejected there by name.
+    """
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{source}: invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{source}: not UTF-8 text: {exc.reason}") from None
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise error(f"{source}: {format_validation_error(exc)}") from None
+
+
+def read_text(path: str | Path, *, error: type[ValueError]) -> tuple[str, str]:
+    """(text, source name) of a file, or one `error` line saying why it cannot be read."""
+    p = Path(path)
+    try:
+        return p.read_text(encoding="utf-8"), p.name
+    except FileNotFoundError:
+        raise error(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{p}: is a directory, not a file") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{p.name}: not UTF-8 text: {exc.reason}") from None
+    except OSError as exc:
+        raise error(f"{p}: cannot read: {exc.strerror or exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------------
+# Map, robot, sensor
+# ---------------------------------------------------------------------------------------------------
+
+
+class Bounds(_Frozen):
+    """The map's axis-aligned extent; the robot stays inside."""
+
+    min: Vec2
+    max: Vec2
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Bounds:
+        if not (self.min[0] < self.max[0] and self.min[1] < self.max[1]):
+            raise FieldError(("max",), f"must exceed bounds.min {list(self.min)} on both axes, got {list(self.max)}")
+        return self
+
+    def contains(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """True for each point inside or on the bounds."""
+        z = np.atleast_2d(np.asarray(points, dtype=float))
+        lo, hi = np.asarray(self.min), np.asarray(self.max)
+        return np.all((z >= lo) & (z <= hi), axis=1)
+
+
+class Robot(_Frozen):
+    """Footprint and kinematic bicycle limits (the paper: 0.3 × 0.6 m, L = 0.6, d_r = 0.5, |δ| ≤ 0.2)."""
+
+    width: float = Field(gt=0)
+    length: float = Field(gt=0)
+    wheelbase: float = Field(gt=0)
+    safety_distance: float = Field(gt=0)
+    max_speed: float = Field(gt=0)
+    max_steering_angle: float = Field(gt=0, lt=math.pi / 2)
+    max_steering_rate: float = Field(gt=0)
+
+
+class Sensor(_Frozen):
+    """2-D range sensor centred on the heading."""
+
+    fov_deg: float = Field(gt=0, le=360)
+    range: float = Field(gt=0)
+    rays: int = Field(ge=2)
+    rate_hz: float = Field(gt=0)
+
+
+class Pose(_Frozen):
+    x: float
+    y: float
+    theta: float
+
+    @property
+    def xy(self) -> FloatArray:
+        return np.array([self.x, self.y])
+
+
+# ---------------------------------------------------------------------------------------------------
+# Obstacles: true solids
+# ---------------------------------------------------------------------------------------------------
+
+
+def _as_points(points: ArrayLike) -> FloatArray:
+    return np.atleast_2d(np.asarray(points, dtype=float)).reshape(-1, 2)
+
+
+def _ccw(vertices: FloatArray) -> FloatArray:
+    """The same ring counter-clockwise (positive shoelace area)."""
+    x, y = vertices[:, 0], vertices[:, 1]
+    signed = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return vertices[::-1].copy() if signed < 0 else vertices
+
+
+def _hull_vertices(geom: BaseGeometry) -> FloatArray:
+    """Vertices of a convex hull geometry: CCW ring for a polygon, endpoints for a segment, one point."""
+    if isinstance(geom, shapely.Polygon):
+        return _ccw(np.asarray(geom.exterior.coords)[:-1])
+    return np.asarray(geom.coords, dtype=float).reshape(-1, 2)
+
+
+def _shapely_distance(geom: BaseGeometry, points: ArrayLike) -> FloatArray:
+    return np.asarray(shapely.distance(geom, shapely.points(_as_points(points))), dtype=float)
+
+
+class PolygonObstacle(_Frozen):
+    """A simple polygon (convex or not), vertices in either orientation."""
+
+    type: Literal["polygon"] = "polygon"
+    vertices: list[Vec2]
+
+    @field_validator("vertices")
+    @classmethod
+    def _simple(cls, vertices: list[Vec2]) -> list[Vec2]:
+        if len(vertices) < 3:
+            raise ValueError(f"polygon needs at least 3 vertices, got {len(vertices)}")
+        v = np.asarray(vertices, dtype=float)
+        span = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+        hull = shapely.MultiPoint(v).convex_hull
+        if hull.area <= 1e-9 * span**2:
+            raise ValueError("polygon has zero area (its vertices are collinear or coincide)")
+        poly = shapely.Polygon(v)
+        if not poly.is_valid:
+            raise ValueError(f"polygon is self-intersecting ({shapely.is_valid_reason(poly)})")
+        if poly.area <= 1e-9 * span**2:
+            raise ValueError("polygon has zero area")
+        return vertices
+
+    @cached_property
+    def _solid(self) -> BaseGeometry:
+        geom = shapely.Polygon(self.vertices)
+        shapely.prepare(geom)
+        return geom
+
+    def solid(self) -> BaseGeometry:
+        return self._solid
+
+    def distance(self, points: ArrayLike) -> FloatArray:
+        """Euclidean distance from each point to the polygon (0 inside or on it)."""
+        return _shapely_distance(self._solid, points)
+
+    def cover_vertices(self, *, circle_sides: int = 16) -> FloatArray:
+        """The convex hull, CCW: the smallest convex polygon containing the solid."""
+        return _hull_vertices(self._solid.convex_hull)
+
+
+class CircleObstacle(_Frozen):
+    """A disc; distances are analytic, so no polygonal approximation error enters the checks."""
+
+    type: Literal["circle"] = "circle"
+    center: Vec2
+    radius: float = Field(gt=0)
+
+    def solid(self, *, quad_segs: int = 64) -> BaseGeometry:
+        """A polygon inscribed in the disc (shapely has no true circle); for drawing and set operations."""
+        return shapely.Point(self.center).buffer(self.radius, quad_segs=quad_segs)
+
+    def distance(self, points: ArrayLike) -> FloatArray:
+        """max(0, ‖p − c‖ − r) for each point."""
+        d = np.linalg.norm(_as_points(points) - np.asarray(self.center), axis=1)
+        return np.maximum(0.0, d - self.radius)
+
+    def cover_vertices(self, *, circle_sides: int = 16) -> FloatArray:
+        """The circumscribed regular `circle_sides`-gon, CCW.
+
+        Its edges are tangent to the circle at their midpoints, so its vertices lie at radius
+        r / cos(π / sides): the apothem of a regular n-gon with circumradius R is R cos(π / n).
+        """
+        if circle_sides < 3:
+            raise ValueError(f"circle_sides must be at least 3, got {circle_sides}")
+        t = 2.0 * np.pi * np.arange(circle_sides) / circle_sides
+        big = self.radius / np.cos(np.pi / circle_sides)
+        return np.asarray(self.center) + big * np.column_stack([np.cos(t), np.sin(t)])
+
+
+class PointsObstacle(_Frozen):
+    """Sensed corner points; the solid is their convex hull (the paper's obstacle corners)."""
+
+    type: Literal["points"] = "points"
+    points: list[Vec2] = Field(min_length=1)
+
+    @cached_property
+    def _solid(self) -> BaseGeometry:
+        geom = shapely.MultiPoint(self.points).convex_hull
+        shapely.prepare(geom)
+        return geom
+
+    def solid(self) -> BaseGeometry:
+        """The convex hull: a polygon, or a segment / single point when the points are degenerate."""
+        return self._solid
+
+    def distance(self, points: ArrayLike) -> FloatArray:
+        """Euclidean distance from each point to the convex hull (0 inside or on it)."""
+        return _shapely_distance(self._solid, points)
+
+    def cover_vertices(self, *, circle_sides: int = 16) -> FloatArray:
+        """The hull's vertices, CCW; one or two points are returned as given."""
+        if len(self.points) <= 2:
+            return np.asarray(self.points, dtype=float).reshape(-1, 2)
+        return _hull_vertices(self._solid)
+
+
+Obstacle = Annotated[Union[PolygonObstacle, CircleObstacle, PointsObstacle], Field(discriminator="type")]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Scenario
+# ---------------------------------------------------------------------------------------------------
+
+
+class Scenario(_Frozen):
+    """One planning problem: map, robot, sensor, start, goals in order, and the expected outcome."""
+
+    format: Literal["cvxnav.scenario/1"]
+    name: str = Field(min_length=1)
+    description: str = ""
+    bounds: Bounds
+    robot: Robot
+    sensor: Sensor
+    start: Pose
+    goals: list[Vec2] = Field(min_length=1)
+    goal_tolerance: float = Field(gt=0)
+    obstacles: list[Obstacle] = Field(default_factory=list)
+    expect: Literal["reach", "no_path"]
+
+    @model_validator(mode="after")
+    def _start_and_goals_free(self) -> Scenario:
+        named: list[tuple[tuple[str | int, ...], Vec2]] = [(("start",), (self.start.x, self.start.y))]
+        named += [(("goals", i), g) for i, g in enumerate(self.goals)]
+        pts = np.array([p for _, p in named], dtype=float)
+        inside = self.bounds.contains(pts)
+        for (loc, p), ok in zip(named, inside):
+            if not ok:
+                raise FieldError(
+                    loc, f"{list(p)} is outside bounds {list(self.bounds.min)}..{list(self.bounds.max)}"
+                )
+        for j, obstacle in enumerate(self.obstacles):
+            hit = obstacle.distance(pts) <= 0.0
+            for (loc, p), bad in zip(named, hit):
+                if bad:
+                    raise FieldError(loc, f"{list(p)} is inside or on obstacles[{j}] ({obstacle.type})")
+        return self
+
+    @property
+    def inflation_m(self) -> float:
+        """Clearance the centre line keeps from true obstacles: the paper's d_w + d_r."""
+        return self.robot.width / 2.0 + self.robot.safety_distance
+
+    @property
+    def max_curvature(self) -> float:
+        """Kinematic bicycle bound κ = tan(δ_max) / L (minimum turn radius L / tan δ_max)."""
+        return math.tan(self.robot.max_steering_angle) / self.robot.wheelbase
+
+    @property
+    def goals_array(self) -> FloatArray:
+        """Goals as an (m, 2) array, in visiting order."""
+        return np.asarray(self.goals, dtype=float).reshape(-1, 2)
+
+    def clearance(self, points: ArrayLike) -> FloatArray:
+        """Distance from each point to the nearest true obstacle solid (inf when there are none)."""
+        z = _as_points(points)
+        out = np.full(len(z), np.inf)
+        for obstacle in self.obstacles:
+            np.minimum(out, obstacle.distance(z), out=out)
+        return out
+
+    def in_collision(self, points: ArrayLike, *, margin_m: float = 0.0) -> NDArray[np.bool_]:
+        """True where a point is within `margin_m` of a true solid (inside or on it for the default 0)."""
+        return self.clearance(points) <= margin_m
+
+
+def parse_scenario(text: str | bytes, *, source: str = "<string>") -> Scenario:
+    """Validate scenario JSON text; any problem raises ScenarioError with one line naming the field."""
+    return parse_json_model(Scenario, text, source=source, error=ScenarioError)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario file; any problem raises ScenarioError with one line."""
+    text, source = read_text(path, error=ScenarioError)
+    return parse_scenario(text, source=source)
+
+
+def bundled_scenario() -> Scenario:
+    """The paper's two-goal scenario shipped inside the package, the default for `cvxnav run`."""
+    resource = importlib.resources.files("cvxnav") / "data" / BUNDLED_SCENARIO
+    return parse_scenario(resource.read_text(encoding="utf-8"), source=BUNDLED_SCENARIO)
