@@ -1,0 +1,255 @@
+"""Minimum-volume enclosing ellipses (Löwner–John), the paper's eq. (1) corrected.
+
+The paper's eq. (1) reads "maximise log det(A⁻¹)"; with the ellipse written {z : ‖A z + b‖₂ ≤ 1} the
+area is π / det A, so the minimum-area ellipse MAXIMISES log det A:
+
+    maximise    log det A
+    subject to  ‖A xᵢ + b‖₂ ≤ 1,   i = 1 … m,      A ≻ 0.
+
+Two routes solve it:
+
+* `mvee` — the convex programme above in cvxpy (Boyd & Vandenberghe, Convex Optimization §8.4.1),
+  built once per padded point count with a `cp.Parameter` for the points and re-solved.
+* `mvee_fast` — the dual problem, maximise log det(Q diag(u) Qᵀ) over the simplex with qᵢ = (xᵢ, 1),
+  solved by Khachiyan's algorithm with Todd–Yildirim away steps (Todd & Yildirim 2007, "On Khachiyan's
+  algorithm for the computation of minimum-volume enclosing ellipsoids") to a coarse tolerance and
+  finished by Newton steps on the support; pure numpy.
+
+Both work on the convex-hull vertices (the MVEE of a set is the MVEE of its hull), in coordinates
+centred on the mean and scaled to unit spread (affine invariance: the MVEE commutes with affine maps),
+and both end with the same containment guarantee: the fitted ellipse is scaled about its centre by
+the largest level ‖A xᵢ + b‖ if that exceeds 1, so every input point has level ≤ 1 up to rounding.
+
+Degenerate inputs (one point, duplicates, collinear points, or a hull thinner than `eps_m`) have no
+finite-area MVEE; they are fattened to P ⊕ {±eps e₁, ±eps e₂}, giving a thin ellipse that still
+contains the points.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cvxpy as cp
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial import ConvexHull
+
+from cvxnav.geometry import Ellipse, FloatArray
+
+__all__ = ["FitError", "mvee", "mvee_fast"]
+
+_ACCEPTED_STATUSES = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+# A solver answer whose worst point sits further out than this is a failed solve, not rounding.
+_MAX_SOLVER_VIOLATION = 1e-4
+
+
+class FitError(RuntimeError):
+    """An ellipse could not be fitted (bad input or a solver that did not reach an optimum)."""
+
+
+# --------------------------------------------------------------------------- shared preprocessing
+
+
+def _as_points(points: ArrayLike) -> FloatArray:
+    z = np.asarray(points, dtype=float)
+    if z.ndim == 1 and z.size == 2:
+        z = z.reshape(1, 2)
+    if z.ndim != 2 or z.shape[1] != 2 or z.shape[0] == 0:
+        raise FitError(f"points must be a non-empty (n, 2) array, got shape {z.shape}")
+    if not np.all(np.isfinite(z)):
+        raise FitError("points must be finite")
+    return z
+
+
+def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatArray, float]:
+    """Hull vertices of the (possibly fattened) set, in normalised coordinates.
+
+    Returns (vertices_normalised, shift, scale) with x = shift + scale · x_normalised.
+    The set is degenerate when its spread across its principal axis is below `eps_m` (collinear,
+    duplicate or single points); it is then replaced by its two extreme points along the principal
+    axis ⊕ {±eps e₁, ±eps e₂}, a set that contains the original points.
+    """
+    shift = z.mean(axis=0)
+    centred = z - shift
+    _, _, vt = np.linalg.svd(centred, full_matrices=False) if len(z) > 1 else (None, None, np.eye(2))
+    across = centred @ vt[-1]
+    if np.ptp(across) < eps_m:
+        along = centred @ vt[0]
+        ends = centred[[int(np.argmin(along)), int(np.argmax(along))]]
+        cross = eps_m * np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+        centred = (ends[:, None, :] + cross[None, :, :]).reshape(-1, 2)
+    scale = float(np.max(np.abs(centred)))
+    unit = centred / scale
+    hull = ConvexHull(unit)
+    return unit[hull.vertices], shift, scale
+
+
+def _denormalise(A_unit: FloatArray, b_unit: FloatArray, *, shift: FloatArray, scale: float) -> Ellipse:
+    """‖A' (x − shift)/scale + b'‖ ≤ 1  ⇔  ‖A x + b‖ ≤ 1 with A = A'/scale, b = b' − A shift."""
+    A = A_unit / scale
+    return Ellipse(A=A, b=b_unit - A @ shift)
+
+
+def _contain(ellipse: Ellipse, z: FloatArray, *, max_violation: float) -> Ellipse:
+    """Scale the ellipse about its centre so that every point of `z` has level ≤ 1."""
+    worst = float(np.max(ellipse.level(z)))
+    if worst <= 1.0:
+        return ellipse
+    if worst > 1.0 + max_violation:
+        raise FitError(f"fitted ellipse misses a point by level {worst:.3g} (> 1 + {max_violation:g})")
+    factor = worst * (1.0 + 4.0 * np.finfo(float).eps)
+    A = ellipse.A / factor
+    return Ellipse(A=A, b=-A @ ellipse.center)
+
+
+# --------------------------------------------------------------------------- cvxpy route
+
+
+def _bucket(count: int) -> int:
+    """The padded size: the smallest power of two ≥ count, at least 8."""
+    return max(8, 1 << (count - 1).bit_length())
+
+
+@functools.lru_cache(maxsize=None)
+def _mvee_problem(size: int) -> tuple[cp.Problem, cp.Parameter, cp.Variable, cp.Variable]:
+    """Eq. (1) for `size` points, built once; the points are a (2, size) Parameter (DPP: A @ P)."""
+    points = cp.Parameter((2, size), name="points")
+    A = cp.Variable((2, 2), PSD=True, name="A")
+    b = cp.Variable(2, name="b")
+    constraints = [cp.norm(A @ points + b[:, None], 2, axis=0) <= 1.0]
+    problem = cp.Problem(cp.Maximize(cp.log_det(A)), constraints)
+    return problem, points, A, b
+
+
+def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) -> Ellipse:
+    """Löwner–John ellipse of `points` by the convex programme of eq. (1) (maximise log det A).
+
+    The hull vertices are padded to a bucket size by repeating one vertex (a duplicate does not
+    change the MVEE) so that one compiled problem per bucket serves every call. Not thread-safe:
+    the cached problems are shared.
+    """
+    z = _as_points(points)
+    vertices, shift, scale = _support_points(z, eps_m=eps_m)
+    size = _bucket(len(vertices))
+    padded = np.vstack([vertices, np.repeat(vertices[:1], size - len(vertices), axis=0)])
+    problem, param, A, b = _mvee_problem(size)
+    param.value = padded.T
+    try:
+        problem.solve(solver=solver)
+    except cp.error.SolverError as exc:
+        raise FitError(f"MVEE solve failed with {solver}: {exc}") from exc
+    if problem.status not in _ACCEPTED_STATUSES or A.value is None:
+        raise FitError(f"MVEE solve with {solver} ended with status {problem.status!r}")
+    A_unit = 0.5 * (A.value + A.value.T)
+    if np.linalg.eigvalsh(A_unit)[0] <= 0.0:
+        raise FitError(f"MVEE solve with {solver} returned a shape matrix that is not positive definite")
+    ellipse = _denormalise(A_unit, np.asarray(b.value, dtype=float), shift=shift, scale=scale)
+    return _contain(ellipse, z, max_violation=_MAX_SOLVER_VIOLATION)
+
+
+# --------------------------------------------------------------------------- numpy route
+
+_ACTIVE_SET_ROUNDS = 8
+_LIFT = 3.0  # d + 1 for d = 2: at the optimum Mᵢ = qᵢᵀ X⁻¹ qᵢ equals 3 on the support and ≤ 3 elsewhere.
+
+
+def _todd_yildirim(Q: FloatArray, u: FloatArray, *, tol: float, max_iter: int) -> tuple[FloatArray, bool]:
+    """Khachiyan's coordinate ascent with Todd–Yildirim away/drop steps on the dual of eq. (1).
+
+    X(u) = Q diag(u) Qᵀ, Mᵢ = qᵢᵀ X⁻¹ qᵢ. A toward step moves weight λ = (Mⱼ − 3)/(3 (Mⱼ − 1)) onto the
+    worst point j; an away step takes weight off the support point k with the smallest Mₖ (dropping
+    it when the step reaches uₖ = 0). X⁻¹ and M are updated by Sherman–Morrison. Stops when
+    max M ≤ 3 (1 + tol) and min over the support ≥ 3 (1 − tol); returns (u, whether it stopped so).
+    """
+    u = u.copy()
+    Xi = np.linalg.inv((Q * u) @ Q.T)
+    M = np.einsum("ij,ij->j", Q, Xi @ Q)
+    for _ in range(max_iter):
+        j = int(np.argmax(M))
+        k = int(np.argmin(np.where(u > 0.0, M, np.inf)))
+        up, down = M[j] / _LIFT - 1.0, 1.0 - M[k] / _LIFT
+        if max(up, down) <= tol:
+            return u, True
+        if up >= down:
+            idx, lam = j, (M[j] - _LIFT) / (_LIFT * (M[j] - 1.0))
+        else:
+            idx, lam = k, -min((_LIFT - M[k]) / (_LIFT * (M[k] - 1.0)), u[k] / (1.0 - u[k]))
+        w = Xi @ Q[:, idx]
+        c = lam / (1.0 - lam + lam * M[idx])
+        Xi = (Xi - c * np.outer(w, w)) / (1.0 - lam)
+        M = (M - c * (Q.T @ w) ** 2) / (1.0 - lam)
+        u *= 1.0 - lam
+        u[idx] += lam
+        if u[idx] < 1e-15:
+            u[idx] = 0.0
+    return u, False
+
+
+def _newton_polish(Q: FloatArray, u: FloatArray, *, tol: float, max_iter: int = 12) -> FloatArray:
+    """Newton's method for max log det(Q diag(u) Qᵀ) s.t. Σu = 1 on the current support.
+
+    Gradient Mᵢ = qᵢᵀ X⁻¹ qᵢ, Hessian −(qᵢᵀ X⁻¹ qⱼ)²; each step solves the equality-constrained Newton
+    system [[(K∘K), 1], [1ᵀ, 0]] [d; ν] = [M; 0] (least squares when it is singular, which happens when
+    more than five points lie on the optimal ellipse, e.g. a regular polygon) and is truncated to keep
+    u ≥ 0, dropping the point that blocks. From a coarse Todd–Yildirim start on the right support this
+    converges quadratically; whatever it leaves unfinished the final Todd–Yildirim pass completes.
+    """
+    u = u.copy()
+    for _ in range(max_iter):
+        S = np.flatnonzero(u > 0.0)
+        Qs = Q[:, S]
+        K = Qs.T @ np.linalg.solve((Qs * u[S]) @ Qs.T, Qs)
+        g = np.diagonal(K)
+        if np.max(np.abs(g - _LIFT)) <= _LIFT * tol * 0.1:
+            break
+        n = len(S)
+        kkt = np.ones((n + 1, n + 1))
+        kkt[:n, :n] = K * K
+        kkt[n, n] = 0.0
+        rhs = np.append(g, 0.0)
+        try:
+            d = np.linalg.solve(kkt, rhs)[:n]
+        except np.linalg.LinAlgError:
+            d = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:n]
+        us = u[S]
+        neg = d < 0.0
+        alpha = min(1.0, float(np.min(-us[neg] / d[neg]))) if np.any(neg) else 1.0
+        us = us + alpha * d
+        us[us < 1e-14] = 0.0
+        if not np.any(us > 0.0):
+            break
+        u[S] = us / us.sum()
+    return u
+
+
+def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_iter: int = 100_000) -> Ellipse:
+    """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy.
+
+    Todd–Yildirim iterations to a coarse tolerance, Newton polish on the support, then the full
+    Todd–Yildirim check: on return max Mᵢ ≤ 3 (1 + tol), which bounds the area above the optimum by a
+    factor (1 + tol) (Khachiyan's bound), and the ellipse is scaled to contain every point. From the
+    optimal weights u: centre c = Σ uᵢ xᵢ, shape E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
+    """
+    z = _as_points(points)
+    vertices, shift, scale = _support_points(z, eps_m=eps_m)
+    Q = np.vstack([vertices.T, np.ones(len(vertices))])
+    u = np.full(len(vertices), 1.0 / len(vertices))
+    u, done = _todd_yildirim(Q, u, tol=max(tol, 3e-2), max_iter=max_iter)
+    for _ in range(_ACTIVE_SET_ROUNDS):
+        # Newton on the support; one Todd–Yildirim step then brings in a violator or drops a point.
+        u = _newton_polish(Q, u, tol=tol)
+        u, done = _todd_yildirim(Q, u, tol=tol, max_iter=1)
+        if done:
+            break
+    if not done:
+        u, done = _todd_yildirim(Q, u, tol=tol, max_iter=max_iter)
+    if not done:
+        raise FitError(f"Todd–Yildirim iterations did not reach tolerance {tol:g} in {max_iter} steps")
+    c = vertices.T @ u
+    sigma = (vertices.T * u) @ vertices - np.outer(c, c)
+    w, R = np.linalg.eigh(sigma)
+    if w[0] <= 0.0:
+        raise FitError("MVEE weights collapsed onto a degenerate support")
+    A_unit = R @ np.diag(1.0 / np.sqrt(2.0 * w)) @ R.T
+    ellipse = _denormalise(A_unit, -A_unit @ c, shift=shift, scale=scale)
+    return _contain(ellipse, z, max_violation=max(1e-3, 10.0 * tol))
