@@ -1,0 +1,108 @@
+"""Output files `cvxnav.plan/1` and `cvxnav.run/1` (CONTRACTS §4) as frozen pydantic models.
+
+Writers and readers share these models, so a file that `read` accepts is exactly what `write` produces:
+finite numbers, no unknown fields, the format string pinned.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from cvxnav.geometry import Ellipse
+from schemas.scenario import FieldError, Vec2, parse_json_model, read_text
+
+PLAN_FORMAT = "cvxnav.plan/1"
+RUN_FORMAT = "cvxnav.run/1"
+
+_File = TypeVar("_File", bound="_OutputFile")
+
+
+class OutputFileError(ValueError):
+    """A plan or run file that cannot be read; `str()` is one line naming the file, the field and the reason."""
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class _OutputFile(_Frozen):
+    def write(self, path: str | Path) -> None:
+        """Write as JSON (indent 1, like the scenario files)."""
+        Path(path).write_text(self.model_dump_json(indent=1) + "\n", encoding="utf-8")
+
+    @classmethod
+    def read(cls: type[_File], path: str | Path) -> _File:
+        """Read and validate; any problem raises OutputFileError with one line."""
+        text, source = read_text(path, error=OutputFileError)
+        return parse_json_model(cls, text, source=source, error=OutputFileError)
+
+
+class EllipseModel(_Frozen):
+    """One ellipse in the paper's form {z : ‖A z + b‖₂ ≤ 1}; A must be symmetric positive definite."""
+
+    A: tuple[Vec2, Vec2]
+    b: Vec2
+
+    @model_validator(mode="after")
+    def _positive_definite(self) -> EllipseModel:
+        (a11, a12), (a21, a22) = self.A
+        if abs(a12 - a21) > 1e-9 * max(1.0, abs(a11), abs(a22)):
+            raise FieldError(("A",), f"must be symmetric, got A[0][1]={a12} and A[1][0]={a21}")
+        if not (a11 > 0.0 and a11 * a22 - a12 * a21 > 0.0):
+            raise FieldError(("A",), "must be positive definite")
+        return self
+
+    @classmethod
+    def from_ellipse(cls, ellipse: Ellipse) -> EllipseModel:
+        A = ellipse.A.tolist()
+        return cls(A=(tuple(A[0]), tuple(A[1])), b=tuple(ellipse.b.tolist()))
+
+    def to_ellipse(self) -> Ellipse:
+        return Ellipse(A=self.A, b=self.b)
+
+
+class PlanTimings(_Frozen):
+    """Wall time per pipeline stage in milliseconds: cluster → fit → group → optimise → smooth."""
+
+    cluster: float = Field(ge=0)
+    fit: float = Field(ge=0)
+    group: float = Field(ge=0)
+    optimize: float = Field(ge=0)
+    smooth: float = Field(ge=0)
+    total: float = Field(ge=0)
+
+
+class PlanFile(_OutputFile):
+    """`cvxnav plan` output: the smoothed centre line, the raw path, and the inflated ellipses it avoids."""
+
+    format: Literal["cvxnav.plan/1"] = PLAN_FORMAT
+    scenario: str
+    status: Literal["ok", "no_path"]
+    path: list[Vec2]
+    raw_path: list[Vec2]
+    ellipsoids: list[EllipseModel]
+    timings_ms: PlanTimings
+
+
+class LatencyStats(_Frozen):
+    """Sensor scan → smoothed path received by the sim, in milliseconds."""
+
+    p50: float = Field(ge=0)
+    p99: float = Field(ge=0)
+    max: float = Field(ge=0)
+
+
+class RunFile(_OutputFile):
+    """`cvxnav run` output: one trajectory row [t_s, x, y, theta] per simulation step, and the outcome."""
+
+    format: Literal["cvxnav.run/1"] = RUN_FORMAT
+    scenario: str
+    status: Literal["reached", "no_path", "timeout", "collision"]
+    goals_reached: int = Field(ge=0)
+    trajectory: list[tuple[float, float, float, float]]
+    replans: int = Field(ge=0)
+    latency_ms: LatencyStats
+    min_clearance: float
