@@ -1,0 +1,218 @@
+"""The one Zenoh shell every stage runs in: pure core inside, the same thin shell around each.
+
+A stage's core is plain code: ``process(topic=, message=, now_s=)`` returns the messages to publish,
+by topic. ``run_stage`` does all the I/O. Which keys a stage reads and writes comes from the wiring
+table (``schemas.wiring.STAGES``), never from the core.
+
+Each input is received through ``zenoh.handlers.RingChannel(1)``: a stage that falls behind works on
+the newest sample and the stale ones are dropped, so nothing queues without bound. After every input
+the stage publishes a ``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason
+for an input it could not use (oversize, bad JSON, wrong schema, non-finite number, validation
+failure, ``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing
+else, so the last good outputs stand.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from typing import Protocol
+
+import zenoh
+from pydantic import BaseModel
+
+from schemas.messages import DecodeError, Header, StageStatus, decode
+from schemas.wiring import STAGES, StageSpec, alive_key, key, model_for, status_key
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20
+# How long the worker sleeps when no input is pending; bounds the added latency.
+IDLE_WAIT_S = 0.002
+
+Outputs = list[tuple[str, BaseModel]]
+
+
+class StageInputError(ValueError):
+    """Raised by a core for an input it rejects (valid schema, unusable content); stage carries on."""
+
+
+class StageCore(Protocol):
+    def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        """Handle one input message; return the messages to publish, by topic name."""
+        ...
+
+
+class TickingCore(StageCore, Protocol):
+    """A core that also produces outputs on a timer (the sim publishing scans and state)."""
+
+    def tick(self, *, now_s: float) -> Outputs:
+        """Advance by one period; return the messages to publish, by topic name."""
+        ...
+
+
+def install_signal_handlers(stop_event: threading.Event) -> None:
+    """Set ``stop_event`` on SIGINT and SIGTERM (compose stops containers with SIGTERM).
+
+    Must be called from the main thread (a Python restriction on ``signal.signal``).
+    """
+
+    def _stop(signum: int, _frame: object) -> None:
+        logger.info("received %s, stopping", signal.Signals(signum).name)
+        stop_event.set()
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
+
+
+class _Shell:
+    """The per-input step of ``run_stage``: size check, decode, process, publish, report."""
+
+    def __init__(
+        self,
+        *,
+        spec: StageSpec,
+        core: StageCore,
+        publishers: dict[str, zenoh.Publisher],
+        status_publisher: zenoh.Publisher,
+        max_payload_bytes: int,
+        clock: Callable[[], float],
+    ) -> None:
+        self._spec = spec
+        self._core = core
+        self._publishers = publishers
+        self._status_publisher = status_publisher
+        self._max_payload_bytes = max_payload_bytes
+        self._clock = clock
+        self._status_seq = 0
+        self._last_stamp_s = 0.0
+
+    def handle(self, *, topic: str, sample: zenoh.Sample) -> None:
+        """Decode and process one input sample, publish the outputs, report a status."""
+        input_key = str(sample.key_expr)
+        self._step(lambda: self._process(topic=topic, sample=sample), input_key=input_key)
+
+    def tick(self) -> None:
+        """One timer step; reports a status only when it fails (a tick has no input to judge)."""
+        core: TickingCore = self._core  # type: ignore[assignment]  # run_stage's contract
+        self._step(lambda: core.tick(now_s=self._clock()), input_key=None, report_ok=False)
+
+    def _step(self, step: Callable[[], Outputs], *, input_key: str | None, report_ok: bool = True) -> None:
+        started = time.perf_counter()
+        where = input_key or "tick"
+        try:
+            outputs = self._checked(step())
+        except (DecodeError, StageInputError) as error:
+            self._report(input_key=input_key, started=started, reason=f"{where}: {error}")
+            return
+        except Exception as error:  # a solver or core failure must not stop the stage
+            logger.exception("stage %s failed on %s", self._spec.name, where)
+            reason = f"{where}: {type(error).__name__}: {error}".splitlines()[0]
+            self._report(input_key=input_key, started=started, reason=reason)
+            return
+        for out_topic, message in outputs:
+            self._publishers[out_topic].put(message.model_dump_json())
+        if report_ok:
+            self._report(input_key=input_key, started=started, reason=None)
+
+    def _process(self, *, topic: str, sample: zenoh.Sample) -> Outputs:
+        size = len(sample.payload)
+        if size > self._max_payload_bytes:
+            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self._max_payload_bytes}")
+        message = decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+        header = getattr(message, "header", None)
+        if isinstance(header, Header):
+            self._last_stamp_s = header.stamp_s
+        return self._core.process(topic=topic, message=message, now_s=self._clock())
+
+    def _checked(self, outputs: Outputs) -> Outputs:
+        """Reject a core's output batch that breaks the wiring table, before any of it is published."""
+        for out_topic, message in outputs:
+            if out_topic not in self._publishers:
+                raise TypeError(f"stage {self._spec.name} does not publish {out_topic!r}")
+            if type(message) is not model_for(out_topic):
+                expected = model_for(out_topic).__name__
+                raise TypeError(f"{out_topic} carries {expected}, not {type(message).__name__}")
+        return outputs
+
+    def _report(self, *, input_key: str | None, started: float, reason: str | None) -> None:
+        status = StageStatus(
+            header=Header(stamp_s=self._last_stamp_s, seq=self._status_seq),
+            stage=self._spec.name,
+            state="ok" if reason is None else "error",
+            reason=reason or "",
+            input_key=input_key,
+            processing_ms=(time.perf_counter() - started) * 1e3,
+        )
+        self._status_seq += 1
+        if reason is not None:
+            logger.warning("stage %s rejected input: %s", self._spec.name, reason)
+        self._status_publisher.put(status.model_dump_json())
+
+
+def run_stage(
+    *,
+    stage: str,
+    core: StageCore,
+    session_config: zenoh.Config,
+    prefix: str,
+    stop_event: threading.Event,
+    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+    clock: Callable[[], float] = time.monotonic,
+    tick_period_s: float | None = None,
+    ready_event: threading.Event | None = None,
+) -> None:
+    """Run ``stage`` (a name in the wiring table) with ``core`` until ``stop_event`` is set.
+
+    The session owns every declaration; all are undeclared, and the liveliness token withdrawn,
+    before this returns. With ``tick_period_s``, ``core`` must be a ``TickingCore`` and its
+    ``tick`` runs at that period between inputs. ``ready_event`` is set once the stage is declared.
+    """
+    spec = STAGES[stage]
+    with zenoh.open(session_config) as session, ExitStack() as declarations:
+        declare = declarations.enter_context
+        publishers = {
+            topic: declare(
+                session.declare_publisher(key(prefix, topic), encoding=zenoh.Encoding(model_for(topic).encoding()))
+            )
+            for topic in spec.publishes
+        }
+        status_publisher = declare(
+            session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
+        )
+        subscribers = {
+            topic: declare(session.declare_subscriber(key(prefix, topic), zenoh.handlers.RingChannel(1)))
+            for topic in spec.subscribes
+        }
+        declare(session.liveliness().declare_token(alive_key(prefix, stage)))
+        shell = _Shell(
+            spec=spec,
+            core=core,
+            publishers=publishers,
+            status_publisher=status_publisher,
+            max_payload_bytes=max_payload_bytes,
+            clock=clock,
+        )
+        logger.info("stage %s running under %s", stage, prefix)
+        if ready_event is not None:
+            ready_event.set()
+        next_tick_s = time.monotonic()
+        while not stop_event.is_set():
+            if tick_period_s is not None and time.monotonic() >= next_tick_s:
+                shell.tick()
+                next_tick_s = max(next_tick_s + tick_period_s, time.monotonic())
+            idle = True
+            for topic, subscriber in subscribers.items():
+                sample = subscriber.try_recv()
+                if sample is None or sample.kind != zenoh.SampleKind.PUT:
+                    continue
+                idle = False
+                shell.handle(topic=topic, sample=sample)
+            if idle:
+                stop_event.wait(IDLE_WAIT_S)
+    logger.info("stage %s stopped", stage)
+
