@@ -90,3 +90,53 @@ def test_noise_is_reproducible_with_the_same_seed() -> None:
     assert not np.array_equal(a, c)
     assert not np.array_equal(a, clean)
     assert np.max(np.abs(a[:, 0] - 3.0)) < 0.2
+
+
+# --- World: the sim's ground truth ------------------------------------------------------------------
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from sim.vehicle import VehicleState  # noqa: E402
+from sim.world import World  # noqa: E402
+
+SCENARIOS = Path("/work/shared/scenarios")
+
+
+def test_world_clearance_is_the_distance_to_the_nearest_obstacle() -> None:
+    world = World(obstacles=[shapely.box(2.0, -1.0, 3.0, 1.0), Circle(center=(0.0, 5.0), radius_m=1.0)],
+                  robot_width_m=0.3, robot_length_m=0.6)
+    clearance = world.clearance([[0.0, 0.0], [2.5, 0.0], [0.0, 3.0], [5.0, 0.5]])
+    np.testing.assert_allclose(clearance, [2.0, 0.0, 1.0, 2.0], atol=1e-12)
+
+
+def test_footprint_collision_and_clearance() -> None:
+    world = World(obstacles=[shapely.box(2.0, -1.0, 3.0, 1.0), Circle(center=(0.0, 5.0), radius_m=1.0)],
+                  robot_width_m=0.3, robot_length_m=0.6, bounds_min=(-1.0, -1.0), bounds_max=(10.0, 10.0))
+    free = VehicleState(x_m=1.0, y_m=0.0, theta_rad=0.0)
+    assert abs(world.footprint_clearance(free) - 0.7) < 1e-12  # front edge at x = 1.3
+    assert not world.footprint_collides(free)
+    assert world.footprint_collides(VehicleState(x_m=1.75, y_m=0.0, theta_rad=0.0))
+    # Heading +x under the circle: the rectangle's top edge (y = 3.4 + 0.15) is 0.45 below the disc.
+    assert abs(world.footprint_clearance(VehicleState(x_m=0.0, y_m=3.4, theta_rad=0.0)) - 0.45) < 1e-12
+    assert world.footprint_collides(VehicleState(x_m=0.0, y_m=3.8, theta_rad=math.pi / 2))
+    assert world.footprint_in_bounds(free)
+    assert not world.footprint_in_bounds(VehicleState(x_m=-0.8, y_m=0.0, theta_rad=0.0))
+
+
+@pytest.mark.parametrize("name", ["paper-two-goals", "field-25", "corner-trap"])
+def test_world_from_scenario_scan_hits_lie_on_the_true_obstacles(name: str) -> None:
+    scenario_module = pytest.importorskip("schemas.scenario")
+    path = SCENARIOS / f"{name}.json"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    scenario = scenario_module.load_scenario(path)
+    world = World.from_scenario(scenario)
+    sensor = RangeSensor.from_scenario(scenario)
+    start = scenario.start
+    hits = sensor.scan(x_m=start.x, y_m=start.y, theta_rad=start.theta, obstacles=world.ray_targets)
+    if len(hits):
+        assert np.max(world.clearance(hits)) < 1e-9
+        assert np.max(np.hypot(hits[:, 0] - start.x, hits[:, 1] - start.y)) <= sensor.range_m + 1e-12
+    assert not world.footprint_collides(VehicleState(x_m=start.x, y_m=start.y, theta_rad=start.theta))
