@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -17,10 +20,11 @@ from dataclasses import dataclass, field
 
 import pytest
 import zenoh
+from pydantic import BaseModel
 
 from cvxnav.runtime import StageInputError, run_stage
 from cvxnav.zenoh_config import build_zenoh_config
-from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, Scan, StageStatus, decode
+from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, RobotState, Scan, StageStatus, decode
 from schemas.wiring import alive_key, key, status_key
 
 WAIT_S = 5.0
@@ -294,3 +298,84 @@ def test_slow_stage_works_on_the_newest_scan_and_drops_stale_ones():
     assert processed[-1] == burst[-1]
     assert len(processed) < 20, f"processed {len(processed)} of {len(burst)}: inputs queued"
     assert processed == sorted(processed)
+
+
+@dataclass
+class TickingSim:
+    """Stand-in sim core: publishes its state every tick; counts the paths it receives."""
+
+    ticks: int = 0
+
+    def process(self, *, topic: str, message: BaseModel, now_s: float) -> list[tuple[str, BaseModel]]:
+        return []
+
+    def tick(self, *, now_s: float) -> list[tuple[str, RobotState]]:
+        self.ticks += 1
+        state = RobotState(
+            header=Header(stamp_s=0.02 * self.ticks, seq=self.ticks),
+            pose=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0),
+            speed_mps=0.0, steering_rad=0.0, goal_index=0, goals_reached=0, done=False,
+        )
+        return [("state", state)]
+
+
+def test_ticking_core_publishes_on_its_period():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    prefix = f"cvxnav/test-{uuid.uuid4().hex[:8]}"
+    stop, ready = threading.Event(), threading.Event()
+    thread = threading.Thread(
+        target=run_stage,
+        kwargs=dict(
+            stage="sim", core=TickingSim(), session_config=build_zenoh_config(listen=[endpoint]),
+            prefix=prefix, stop_event=stop, tick_period_s=0.02, ready_event=ready,
+        ),
+        daemon=True,
+    )
+    thread.start()
+    try:
+        assert ready.wait(WAIT_S)
+        with zenoh.open(build_zenoh_config(connect=[endpoint])) as session:
+            states = session.declare_subscriber(key(prefix, "state"))
+            first, _ = wait_for(states, lambda s: True)
+            assert str(first.encoding) == RobotState.encoding()
+            first_seq = decode(RobotState, first.payload.to_bytes()).header.seq
+            wait_for(states, lambda s: decode(RobotState, s.payload.to_bytes()).header.seq >= first_seq + 3)
+    finally:
+        stop.set()
+        thread.join(WAIT_S)
+    assert not thread.is_alive()
+
+
+SERVICE_SCRIPT = """
+import sys, threading
+from cvxnav.runtime import install_signal_handlers, run_stage
+from cvxnav.zenoh_config import build_zenoh_config
+
+class Idle:
+    def process(self, *, topic, message, now_s):
+        return []
+
+stop = threading.Event()
+install_signal_handlers(stop)
+run_stage(stage="smoother", core=Idle(), session_config=build_zenoh_config(connect=[sys.argv[1]]),
+          prefix=sys.argv[2], stop_event=stop)
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_service_process_stops_cleanly_on_signal(signum):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    prefix = f"cvxnav/test-{uuid.uuid4().hex[:8]}"
+    token_key = alive_key(prefix, "smoother")
+    with zenoh.open(build_zenoh_config(listen=[endpoint])) as session:
+        alive = session.liveliness().declare_subscriber(token_key, history=True)
+        process = subprocess.Popen([sys.executable, "-c", SERVICE_SCRIPT, endpoint, prefix])
+        try:
+            wait_for(alive, lambda s: s.kind == zenoh.SampleKind.PUT, timeout_s=10.0)
+            process.send_signal(signum)
+            assert process.wait(timeout=WAIT_S) == 0
+            wait_for(alive, lambda s: s.kind == zenoh.SampleKind.DELETE)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
