@@ -1,0 +1,98 @@
+"""Sensing stage core: remember scan hits in the map frame and split them into obstacle clusters.
+
+Pure functions and one small accumulator; the Zenoh shell feeds it scans and publishes clusters.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+FloatArray = NDArray[np.float64]
+
+
+def cluster_points(points: ArrayLike, *, link_m: float) -> list[FloatArray]:
+    """Single-linkage clusters: points joined by a chain of neighbours at most `link_m` apart share one.
+
+    The neighbour pairs come from a k-d tree (`query_pairs`, distance ≤ link_m) and the clusters are
+    the connected components of that graph (scipy.sparse.csgraph), so the cost is near-linear.
+
+    Why `link_m` may be as large as the robot's passage width 2·(width/2 + safety_distance): the
+    robot's centre has to stay width/2 + safety_distance from every obstacle point, so two points
+    closer than twice that leave no room between them. Joining them into one obstacle loses no path
+    the robot could take, and is exactly the paper's grouping of obstacles whose gap is too narrow
+    (CONTRACTS §2). A smaller link only yields more, smaller clusters for the later grouping step.
+
+    Returns the clusters as (k, 2) arrays, ordered by their first point in the input; [] for no points.
+    """
+    z = np.asarray(points, dtype=float).reshape(-1, 2)
+    if not (np.isfinite(link_m) and link_m >= 0.0):
+        raise ValueError(f"link_m must be finite and non-negative, got {link_m!r}")
+    n = len(z)
+    if n == 0:
+        return []
+    pairs = cKDTree(z).query_pairs(r=link_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    # connected_components numbers components in order of their lowest point index.
+    order = np.argsort(labels, kind="stable")
+    bounds = np.flatnonzero(np.diff(labels[order])) + 1
+    return [z[idx] for idx in np.split(order, bounds)]
+
+
+class PointMemory:
+    """Scan hits accumulated in the map frame, one point per occupied `voxel_m` grid cell.
+
+    Obstacles seen earlier stay remembered while they are out of the sensor's view (the sensor only
+    sees 180° ahead; the planner must not forget what is behind or beside it).
+
+    Each voxel keeps the first point that fell in it, so re-observing a static obstacle does not move
+    the remembered points and the downstream clustering and ellipse fits stay still. Re-observing a
+    voxel refreshes its age. Beyond `max_points` voxels the least recently observed ones are dropped
+    first: memory is bounded, and what is forgotten is what has been out of view longest.
+    """
+
+    def __init__(self, *, voxel_m: float = 0.05, max_points: int = 50_000) -> None:
+        if not (np.isfinite(voxel_m) and voxel_m > 0.0):
+            raise ValueError(f"voxel_m must be finite and positive, got {voxel_m!r}")
+        if int(max_points) != max_points or max_points < 1:
+            raise ValueError(f"max_points must be a positive integer, got {max_points!r}")
+        self.voxel_m = float(voxel_m)
+        self.max_points = int(max_points)
+        self._voxels: OrderedDict[tuple[int, int], tuple[float, float]] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._voxels)
+
+    def add(self, points: ArrayLike) -> int:
+        """Remember map-frame points (k, 2); returns how many voxels were newly occupied.
+
+        Non-finite rows (e.g. misses encoded as inf) are ignored.
+        """
+        z = np.asarray(points, dtype=float).reshape(-1, 2)
+        z = z[np.all(np.isfinite(z), axis=1)]
+        keys = np.floor(z / self.voxel_m).astype(np.int64)
+        added = 0
+        for key, point in zip(map(tuple, keys.tolist()), z.tolist()):
+            if key in self._voxels:
+                self._voxels.move_to_end(key)
+            else:
+                self._voxels[key] = (point[0], point[1])
+                added += 1
+        while len(self._voxels) > self.max_points:
+            self._voxels.popitem(last=False)
+        return added
+
+    def points(self) -> FloatArray:
+        """The remembered points (n, 2), least recently observed first."""
+        if not self._voxels:
+            return np.zeros((0, 2))
+        return np.array(list(self._voxels.values()), dtype=float)
+
+    def clear(self) -> None:
+        self._voxels.clear()
