@@ -140,3 +140,29 @@ def test_world_from_scenario_scan_hits_lie_on_the_true_obstacles(name: str) -> N
         assert np.max(world.clearance(hits)) < 1e-9
         assert np.max(np.hypot(hits[:, 0] - start.x, hits[:, 1] - start.y)) <= sensor.range_m + 1e-12
     assert not world.footprint_collides(VehicleState(x_m=start.x, y_m=start.y, theta_rad=start.theta))
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    cloud=st.lists(st.tuples(st.floats(1.0, 4.0), st.floats(-3.0, 3.0)), min_size=3, max_size=12),
+    theta=st.floats(-np.pi, np.pi),
+)
+def test_ray_hits_agree_with_shapely_on_random_convex_polygons(cloud, theta: float) -> None:
+    hull = shapely.MultiPoint(cloud).convex_hull
+    if not isinstance(hull, shapely.Polygon) or hull.area < 1e-3:
+        return
+    angles = theta + np.linspace(-np.pi / 2, np.pi / 2, 37)
+    ranges = cast_rays(origin=(0.0, 0.0), angles_rad=angles, targets=RayTargets.of([hull]))
+    for angle, r in zip(angles, ranges):
+        ray = shapely.LineString([(0.0, 0.0), (20.0 * np.cos(angle), 20.0 * np.sin(angle))])
+        crossing = ray.intersection(hull.boundary)
+        if crossing.is_empty:
+            # A miss, or a graze exactly through a vertex that shapely and we may round differently.
+            assert np.isinf(r) or shapely.distance(hull.boundary, shapely.Point(r * np.cos(angle), r * np.sin(angle))) < 1e-9
+            continue
+        expected = shapely.distance(shapely.Point(0.0, 0.0), crossing)
+        assert abs(r - expected) < 1e-9
