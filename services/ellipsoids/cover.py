@@ -1,0 +1,254 @@
+"""Tight covers of obstacles by a few ellipses, each a Löwner–John ellipse (eq. 1) of one piece.
+
+One MVEE per obstacle over-covers badly — the MVEE of a w × h box has semi-axes √2·(w/2, h/2), so it
+sticks out by (√2 − 1)/2 ≈ 0.21 of each side — and closes passages the robot fits through. A cover
+here is grown by recursive bisection: fit the MVEE of a piece, measure its *excess* (the largest
+distance from the ellipse boundary to the piece), and while the worst piece's excess exceeds
+`tolerance_m` split that piece in two across its principal axis (a priority queue keyed on excess),
+up to `max_pieces`. Every piece's ellipse contains the piece, so the union of the ellipses contains
+the obstacle whatever the stopping point.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
+
+from cvxnav.geometry import Ellipse, FloatArray
+from services.ellipsoids.mvee import FitError, mvee_fast
+
+__all__ = ["cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon"]
+
+Fit = Callable[[FloatArray], Ellipse]
+_ISOTROPIC_RATIO = 1.01  # second moments closer than this: the principal axis is ill-defined
+_AREA_EPS = 1e-12
+
+
+# --------------------------------------------------------------------------- excess
+
+
+def _boundary_samples(ellipse: Ellipse, *, tolerance_m: float) -> FloatArray:
+    """Boundary points spaced at most a quarter tolerance apart (32 … 2048 of them)."""
+    a1, a2 = ellipse.semi_axes
+    h = ((a1 - a2) / (a1 + a2)) ** 2
+    perimeter = np.pi * (a1 + a2) * (1.0 + 3.0 * h / (10.0 + np.sqrt(4.0 - 3.0 * h)))  # Ramanujan
+    n = int(np.clip(np.ceil(perimeter / (0.25 * tolerance_m)), 32, 2048))
+    return ellipse.boundary(n)
+
+
+def _ccw(vertices: FloatArray) -> FloatArray:
+    x, y = vertices[:, 0], vertices[:, 1]
+    signed = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    return vertices[::-1] if signed < 0.0 else vertices
+
+
+def _distance_to_convex_polygon(points: FloatArray, vertices: FloatArray) -> FloatArray:
+    """Exact Euclidean distance from each point to a convex CCW polygon (0 inside); 1-2 vertices allowed."""
+    p = vertices
+    q = np.roll(vertices, -1, axis=0)
+    edge = q - p
+    rel = points[:, None, :] - p[None, :, :]
+    length2 = np.einsum("ij,ij->i", edge, edge)
+    t = np.clip(np.einsum("nij,ij->ni", rel, edge) / np.where(length2 > 0.0, length2, 1.0), 0.0, 1.0)
+    nearest = rel - t[:, :, None] * edge[None, :, :]
+    distance = np.min(np.linalg.norm(nearest, axis=2), axis=1)
+    if len(vertices) >= 3 and _area(vertices) > _AREA_EPS:
+        cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
+        distance = np.where(np.all(cross >= 0.0, axis=1), 0.0, distance)
+    return distance
+
+
+def excess_over_polygon(ellipse: Ellipse, vertices: ArrayLike, *, tolerance_m: float = 0.1) -> float:
+    """Largest distance from the ellipse boundary to the convex polygon (boundary sampled finely)."""
+    polygon = _ccw(np.atleast_2d(np.asarray(vertices, dtype=float)))
+    samples = _boundary_samples(ellipse, tolerance_m=tolerance_m)
+    return float(np.max(_distance_to_convex_polygon(samples, polygon)))
+
+
+def excess_over_points(ellipse: Ellipse, points: ArrayLike | cKDTree, *, tolerance_m: float = 0.1) -> float:
+    """Largest distance from the ellipse REGION to the nearest of `points` (a cKDTree or an array).
+
+    Distance to a point cloud is not convex, so unlike the polygon case the boundary alone does not
+    bound it: a ring of samples (a round room seen from inside) has an MVEE whose boundary hugs the
+    samples while its interior is free space. The region is therefore sampled on concentric rings
+    (levels k/m, m ≤ 16, plus the centre) as well as the boundary.
+    """
+    tree = points if isinstance(points, cKDTree) else cKDTree(np.atleast_2d(np.asarray(points, dtype=float)))
+    boundary = _boundary_samples(ellipse, tolerance_m=tolerance_m)
+    centre = ellipse.center
+    rings = int(np.clip(np.ceil(ellipse.semi_axes[0] / (0.5 * tolerance_m)), 1, 16))
+    levels = np.arange(rings + 1)[:, None, None] / rings
+    samples = (centre + levels * (boundary - centre)[None, :, :]).reshape(-1, 2)
+    distance, _ = tree.query(samples)
+    return float(np.max(distance))
+
+
+# --------------------------------------------------------------------------- splitting
+
+
+def _area(vertices: FloatArray) -> float:
+    x, y = vertices[:, 0], vertices[:, 1]
+    return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _polygon_axis(vertices: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Centroid and long direction of a convex polygon from its area second moments.
+
+    With cross_i = x_i y_{i+1} − x_{i+1} y_i: A = Σ cross/2, c = Σ (p_i + p_{i+1}) cross / (6A),
+    ∫x² = Σ (x_i² + x_i x_{i+1} + x_{i+1}²) cross / 12, ∫xy = Σ (x_i y_{i+1} + 2 x_i y_i + 2 x_{i+1} y_{i+1}
+    + x_{i+1} y_i) cross / 24; the long direction is the top eigenvector of the central moments. When
+    the moments are nearly isotropic (a square) the edge direction of largest extent is used instead,
+    so that squares split into rectangles rather than along an arbitrary diagonal. Degenerate
+    polygons (a point or a segment) use their vertices' spread.
+    """
+    shift = vertices.mean(axis=0)
+    v = vertices - shift
+    if len(v) < 3 or abs(_area(v)) <= _AREA_EPS:
+        _, R = np.linalg.eigh(v.T @ v)
+        return shift + 0.5 * (v.min(axis=0) + v.max(axis=0)), R[:, -1]
+    x, y = v[:, 0], v[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = 0.5 * np.sum(cross)
+    centroid = np.array([np.sum((x + xn) * cross), np.sum((y + yn) * cross)]) / (6.0 * area)
+    ixx = np.sum((x * x + x * xn + xn * xn) * cross) / 12.0
+    iyy = np.sum((y * y + y * yn + yn * yn) * cross) / 12.0
+    ixy = np.sum((x * yn + 2.0 * x * y + 2.0 * xn * yn + xn * y) * cross) / 24.0
+    moments = np.array([[ixx, ixy], [ixy, iyy]]) - area * np.outer(centroid, centroid)
+    w, R = np.linalg.eigh(moments)
+    axis = R[:, -1]
+    if w[-1] <= _ISOTROPIC_RATIO * w[0]:
+        edges = np.roll(v, -1, axis=0) - v
+        edges = edges[np.linalg.norm(edges, axis=1) > 0.0]
+        directions = edges / np.linalg.norm(edges, axis=1)[:, None]
+        extents = np.ptp(v @ directions.T, axis=0)
+        axis = directions[int(np.argmax(extents))]
+    return shift + centroid, axis
+
+
+def _clip_half_plane(vertices: FloatArray, *, normal: FloatArray, offset: float) -> FloatArray:
+    """Sutherland–Hodgman: the part of a convex polygon with normal · x ≤ offset (exact, convex)."""
+    s = vertices @ normal - offset
+    out = []
+    n = len(vertices)
+    for i in range(n):
+        j = (i + 1) % n
+        if s[i] <= 0.0:
+            out.append(vertices[i])
+        if (s[i] < 0.0 < s[j]) or (s[j] < 0.0 < s[i]):
+            t = s[i] / (s[i] - s[j])
+            out.append(vertices[i] + t * (vertices[j] - vertices[i]))
+    if not out:
+        return np.zeros((0, 2))
+    clipped = np.array(out)
+    keep = np.ones(len(clipped), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(clipped, axis=0), axis=1) > 1e-12
+    clipped = clipped[keep]
+    if len(clipped) > 1 and np.linalg.norm(clipped[0] - clipped[-1]) <= 1e-12:
+        clipped = clipped[:-1]
+    return clipped
+
+
+def _split_polygon(vertices: FloatArray) -> list[FloatArray]:
+    centroid, axis = _polygon_axis(vertices)
+    offset = float(centroid @ axis)
+    halves = [
+        _clip_half_plane(vertices, normal=axis, offset=offset),
+        _clip_half_plane(vertices, normal=-axis, offset=-offset),
+    ]
+    return [h for h in halves if len(h) > 0]
+
+
+def _split_points(points: FloatArray) -> list[FloatArray]:
+    centred = points - points.mean(axis=0)
+    _, R = np.linalg.eigh(centred.T @ centred)
+    side = centred @ R[:, -1] <= 0.0
+    return [points[side], points[~side]] if 0 < np.count_nonzero(side) < len(points) else []
+
+
+# --------------------------------------------------------------------------- covers
+
+
+def _cover(
+    first: FloatArray,
+    *,
+    fit: Fit,
+    excess: Callable[[Ellipse, FloatArray], float],
+    split: Callable[[FloatArray], list[FloatArray]],
+    tolerance_m: float,
+    max_pieces: int,
+) -> list[Ellipse]:
+    """Split the worst piece while its excess exceeds the tolerance and the piece budget allows."""
+    if tolerance_m <= 0.0 or max_pieces < 1:
+        raise ValueError("tolerance_m must be positive and max_pieces at least 1")
+    order = itertools.count()
+    done: list[Ellipse] = []
+    e = fit(first)
+    heap = [(-excess(e, first), next(order), first, e)]
+    while heap:
+        worst, _, piece, e = heap[0]
+        if -worst <= tolerance_m or len(heap) + len(done) >= max_pieces:
+            break
+        heapq.heappop(heap)
+        children = split(piece)
+        if len(children) < 2:  # cannot be split further (e.g. duplicated points): keep it as is
+            done.append(e)
+            continue
+        for child in children:
+            ce = fit(child)
+            heapq.heappush(heap, (-excess(ce, child), next(order), child, ce))
+    return done + [item[3] for item in sorted(heap, key=lambda item: item[1])]
+
+
+def cover_polygon(
+    vertices: ArrayLike, *, tolerance_m: float = 0.1, max_pieces: int = 64, fit: Fit = mvee_fast
+) -> list[Ellipse]:
+    """Ellipses whose union contains a SOLID convex polygon, each sticking out by ≤ tolerance_m if possible.
+
+    Excess is measured to the WHOLE polygon: an ellipse that bulges into the solid next to its piece
+    closes nothing, only what sticks out of the obstacle matters. (For a convex polygon the distance
+    is a convex function, so its maximum over the ellipse is attained on the boundary.) Pieces are
+    split by the line through their centroid perpendicular to their long axis (exact half-plane
+    clipping, so every piece stays convex and the pieces tile the polygon). Degenerate
+    polygons (1-2 vertices) are allowed and give thin ellipses. `fit` may be `mvee` to use the solver.
+    """
+    polygon = _ccw(np.atleast_2d(np.asarray(vertices, dtype=float)))
+    if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) == 0:
+        raise FitError(f"vertices must be a non-empty (n, 2) array, got shape {polygon.shape}")
+    return _cover(
+        polygon,
+        fit=fit,
+        excess=lambda e, piece: excess_over_polygon(e, polygon, tolerance_m=tolerance_m),
+        split=_split_polygon,
+        tolerance_m=tolerance_m,
+        max_pieces=max_pieces,
+    )
+
+
+def cover_points(
+    points: ArrayLike, *, tolerance_m: float = 0.1, max_pieces: int = 64, fit: Fit = mvee_fast
+) -> list[Ellipse]:
+    """Ellipses covering sensed SURFACE points, each within tolerance_m of its own points if possible.
+
+    The solid behind the samples is unknown, so excess is the largest distance from any point of the
+    ellipse (region, not just boundary) to the nearest sample of the piece, never to their hull (a
+    room's perimeter wall would otherwise swallow the room). Pieces are split by the
+    line through their mean perpendicular to their principal axis; every input point ends up inside
+    the ellipse of its piece.
+    """
+    z = np.atleast_2d(np.asarray(points, dtype=float))
+    if z.ndim != 2 or z.shape[1] != 2 or len(z) == 0:
+        raise FitError(f"points must be a non-empty (n, 2) array, got shape {z.shape}")
+    return _cover(
+        z,
+        fit=fit,
+        excess=lambda e, piece: excess_over_points(e, piece, tolerance_m=tolerance_m),
+        split=_split_points,
+        tolerance_m=tolerance_m,
+        max_pieces=max_pieces,
+    )

@@ -1,0 +1,79 @@
+"""Tight covers: the union contains the obstacle and sticks out of it by at most the tolerance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cvxnav.geometry import EllipseStack
+from services.ellipsoids.cover import cover_points, cover_polygon, excess_over_points, excess_over_polygon
+from services.ellipsoids.mvee import mvee
+
+BOX = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]])
+
+
+def _covered(ellipses, points):
+    return np.min(EllipseStack.of(ellipses).levels(points), axis=1) <= 1.0 + 1e-9
+
+
+def _box_samples():
+    xs, ys = np.meshgrid(np.linspace(0.0, 4.0, 81), np.linspace(0.0, 2.0, 41))
+    return np.column_stack([xs.ravel(), ys.ravel()])
+
+
+@pytest.mark.parametrize("max_pieces", [8, 64, 128])
+def test_box_union_contains_box_whatever_the_budget(max_pieces):
+    ellipses = cover_polygon(BOX, tolerance_m=0.1, max_pieces=max_pieces)
+    assert len(ellipses) <= max_pieces
+    assert np.all(_covered(ellipses, _box_samples()))
+
+
+def test_box_cover_sticks_out_by_at_most_the_tolerance():
+    # A single MVEE sticks out by (√2 − 1) · 2 m; reaching 0.1 m takes 82 pieces (more than the default 64).
+    ellipses = cover_polygon(BOX, tolerance_m=0.1, max_pieces=128)
+    assert max(excess_over_polygon(e, BOX, tolerance_m=0.01) for e in ellipses) <= 0.1 + 1e-3
+
+
+def test_single_mvee_of_box_over_covers():
+    assert excess_over_polygon(mvee(BOX), BOX) == pytest.approx(2.0 * (np.sqrt(2.0) - 1.0), abs=1e-3)  # past the 4 m sides
+
+
+def test_circle_needs_one_ellipse():
+    angles = 2 * np.pi * np.arange(16) / 16
+    ellipses = cover_polygon(np.column_stack([np.cos(angles), np.sin(angles)]), tolerance_m=0.1)
+    assert len(ellipses) == 1
+
+
+@pytest.mark.parametrize("vertices", [[[1.0, 2.0]], [[0.0, 0.0], [3.0, 1.0]]], ids=["point", "segment"])
+def test_degenerate_polygon_is_covered_thinly(vertices):
+    ellipses = cover_polygon(vertices, tolerance_m=0.1)
+    v = np.asarray(vertices)
+    on = v[0] + np.linspace(0.0, 1.0, 50)[:, None] * (v[-1] - v[0])
+    assert np.all(_covered(ellipses, on))
+    assert max(excess_over_polygon(e, v) for e in ellipses) <= 0.1 + 1e-3
+
+
+def _l_wall():
+    t = np.arange(0.0, 4.0 + 1e-9, 0.05)
+    return np.vstack([np.column_stack([t, 0.0 * t]), np.column_stack([0.0 * t[1:], t[1:]])])
+
+
+def test_l_wall_points_covered_tightly_and_corner_left_free():
+    points = _l_wall()
+    ellipses = cover_points(points, tolerance_m=0.1)
+    assert np.all(_covered(ellipses, points))
+    assert max(excess_over_points(e, points, tolerance_m=0.1) for e in ellipses) <= 0.1 + 1e-9
+    assert not np.any(_covered(ellipses, np.array([[1.0, 1.0]])))
+
+
+def test_ring_of_wall_samples_does_not_swallow_the_room():
+    angles = 2 * np.pi * np.arange(400) / 400
+    ring = 3.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    ellipses = cover_points(ring, tolerance_m=0.1, max_pieces=200)
+    assert np.all(_covered(ellipses, ring))
+    assert not np.any(_covered(ellipses, np.array([[0.0, 0.0], [2.0, 0.0]])))
+
+
+def test_duplicated_points_stop_splitting():
+    ellipses = cover_points(np.repeat([[1.0, 1.0]], 5, axis=0), tolerance_m=0.1)
+    assert len(ellipses) == 1
