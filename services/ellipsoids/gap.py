@@ -70,30 +70,53 @@ def ellipse_gap(e1: Ellipse, e2: Ellipse, *, solver: str = "CLARABEL") -> Gap:
     return Gap(distance_m=max(0.0, float(np.linalg.norm(p1 - p2))), point_1=p1, point_2=p2)
 
 
-def group_ellipses(ellipses: list[Ellipse], *, min_gap_m: float, solver: str = "CLARABEL") -> np.ndarray:
+_BOUNDARY_SAMPLES = 32  # closest sampled points bound the gap from above
+
+
+def group_ellipses(
+    ellipses: list[Ellipse],
+    *,
+    min_gap_m: float,
+    connected: np.ndarray | None = None,
+    solver: str = "CLARABEL",
+) -> np.ndarray:
     """Group labels: ellipses closer than `min_gap_m` (= 2 r, the robot cannot pass) share a group.
 
-    Groups are the connected components of the "gap < min_gap_m" graph. Cheap tests first: bounding
-    circles (centre, largest semi-axis) further apart than min_gap_m can never be grouped; a centre
-    inside the other ellipse means gap 0; only the remaining pairs get the SOCP of eq. (3).
+    Groups are the connected components of the "gap < min_gap_m" graph. `connected` optionally labels
+    ellipses already known to be joined (the pieces of one obstacle's cover); only pairs across labels
+    are examined. Certain bounds settle almost every pair without a solve: the bounding circles'
+    distance (centre, largest semi-axis) is a lower bound on the gap, the closest pair of sampled
+    boundary points an upper bound. Only the pairs the bounds leave open get the SOCP of eq. (3), and
+    a pair of components already joined is not examined again.
     """
     m = len(ellipses)
     if m == 0:
         return np.zeros(0, dtype=int)
+    connected = np.arange(m) if connected is None else np.asarray(connected)
     centres = np.array([e.center for e in ellipses])
     radii = np.array([e.semi_axes[0] for e in ellipses])
     i, j = np.triu_indices(m, k=1)
-    circle_gap = np.linalg.norm(centres[i] - centres[j], axis=1) - radii[i] - radii[j]
-    near = circle_gap < min_gap_m
-    i, j = i[near], j[near]
-    levels = EllipseStack.of(ellipses).levels(centres)  # levels[p, q] = ‖A_q c_p + b_q‖
-    touching = (levels[i, j] <= 1.0) | (levels[j, i] <= 1.0)
-    linked = list(zip(i[touching], j[touching]))
-    for a, b in zip(i[~touching], j[~touching]):
-        if ellipse_gap(ellipses[a], ellipses[b], solver=solver).distance_m < min_gap_m:
-            linked.append((a, b))
-    rows = np.array([a for a, _ in linked], dtype=int)
-    cols = np.array([b for _, b in linked], dtype=int)
+    lower = np.linalg.norm(centres[i] - centres[j], axis=1) - radii[i] - radii[j]
+    open_pair = (lower < min_gap_m) & (connected[i] != connected[j])
+    i, j = i[open_pair], j[open_pair]
+    boundary = np.stack([e.boundary(_BOUNDARY_SAMPLES) for e in ellipses])
+    upper = np.array(
+        [np.min(np.linalg.norm(boundary[a][:, None, :] - boundary[b][None, :, :], axis=2)) for a, b in zip(i, j)]
+    ).reshape(-1)
+    certain = upper < min_gap_m
+    links = [(i[certain], j[certain])]
+    labels = _components(m, connected, links)
+    for a, b in zip(i[~certain], j[~certain]):
+        if labels[a] != labels[b] and ellipse_gap(ellipses[a], ellipses[b], solver=solver).distance_m < min_gap_m:
+            links.append((np.array([a]), np.array([b])))
+    return _components(m, connected, links)
+
+
+def _components(m: int, connected: np.ndarray, links: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Connected components of `m` nodes joined by `links` and by equal `connected` labels."""
+    rows = np.concatenate([np.arange(m), *(a for a, _ in links)])
+    # Join every node to the first node carrying its label.
+    first = np.unique(connected, return_index=True)[1][np.unique(connected, return_inverse=True)[1]]
+    cols = np.concatenate([first, *(b for _, b in links)])
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
-    _, labels = connected_components(graph, directed=False)
-    return labels.astype(int)
+    return connected_components(graph, directed=False)[1].astype(int)
