@@ -1,0 +1,5 @@
+import sys
+
+from cvxnav.cli import main
+
+sys.exit(main())

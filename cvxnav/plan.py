@@ -1,0 +1,116 @@
+"""`cvxnav plan`: the whole pipeline in one process on a known map.
+
+cluster → fit → group → optimise → smooth, each stage the same pure code the distributed services run.
+On a known map each obstacle is one cluster whose solid is known (a convex cover of it), so the fit
+can measure its ellipses against the true shape.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from cvxnav.geometry import Ellipse
+from schemas.files import EllipseModel, PlanFile, PlanTimings
+from schemas.scenario import Scenario
+from services.ellipsoids.cover import cover_polygon
+from services.ellipsoids.gap import group_ellipses
+from services.planner.core import PathPlan, plan_path
+from services.planner.refine import RefineSettings
+from services.smoother.core import Smoothed, smooth
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    cover_tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its obstacle
+    max_pieces: int = 64  # ellipses per obstacle at most
+    refine: RefineSettings = field(default_factory=RefineSettings)
+    # When the smoothed curve fails verification, re-optimise with wider margins, in this order.
+    repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8), (1.1, 0.65))  # (level, curvature_factor)
+
+
+@dataclass
+class _Clock:
+    ms: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        yield
+        self.ms[name] = self.ms.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
+
+
+def fit_known_obstacles(
+    scenario: Scenario, *, settings: PlanSettings, clock: _Clock
+) -> tuple[list[Ellipse], np.ndarray]:
+    """Raw (un-grown) ellipses covering every obstacle of a known map tightly, and each one's obstacle."""
+    with clock.stage("cluster"):
+        clusters = [obstacle.cover_vertices() for obstacle in scenario.obstacles]
+    with clock.stage("fit"):
+        covers = [
+            cover_polygon(vertices, tolerance_m=settings.cover_tolerance_m, max_pieces=settings.max_pieces)
+            for vertices in clusters
+        ]
+    ellipses = [ellipse for cover in covers for ellipse in cover]
+    return ellipses, np.repeat(np.arange(len(covers)), [len(cover) for cover in covers])
+
+
+def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()) -> PlanFile:
+    """Plan once on the scenario's known map; the result is verified or reported as `no_path`."""
+    clock = _Clock()
+    t0 = time.perf_counter()
+    raw, pieces = fit_known_obstacles(scenario, settings=settings, clock=clock)
+    with clock.stage("group"):
+        # Obstacles closer than the robot's passage width are one obstacle to the planner; their
+        # grown ellipses overlap, so the route search treats them as one wall.
+        group_ellipses(raw, min_gap_m=2.0 * scenario.inflation_m, connected=pieces)
+        grown = [e.grown(scenario.inflation_m) for e in raw]
+
+    problem = dict(
+        start=np.array(scenario.start.xy),
+        heading_rad=scenario.start.theta,
+        goals=scenario.goals_array,
+        ellipses=grown,
+        bounds_min=np.array(scenario.bounds.min),
+        bounds_max=np.array(scenario.bounds.max),
+        max_curvature=scenario.max_curvature,
+    )
+    attempts = [settings.refine] + [
+        replace(settings.refine, level=level, curvature_factor=factor) for level, factor in settings.repairs
+    ]
+    plan: PathPlan | None = None
+    smoothed: Smoothed | None = None
+    for attempt in attempts:
+        with clock.stage("optimize"):
+            plan = plan_path(**problem, settings=attempt)
+        if plan.status != "ok":
+            break
+        with clock.stage("smooth"):
+            smoothed = smooth(
+                plan.points,
+                ellipses=grown,
+                max_curvature=scenario.max_curvature,
+                heading_rad=scenario.start.theta,
+                goals=scenario.goals_array,
+                goal_tolerance_m=scenario.goal_tolerance,
+                bounds_min=problem["bounds_min"],
+                bounds_max=problem["bounds_max"],
+            )
+        if smoothed.verification.ok:
+            break
+    ok = plan is not None and plan.status == "ok" and smoothed is not None and smoothed.verification.ok
+    for name in ("cluster", "fit", "group", "optimize", "smooth"):
+        clock.ms.setdefault(name, 0.0)
+    clock.ms["total"] = 1e3 * (time.perf_counter() - t0)
+    return PlanFile(
+        scenario=scenario.name,
+        status="ok" if ok else "no_path",
+        path=smoothed.points.tolist() if ok else [],
+        raw_path=plan.points.tolist() if plan is not None else [],
+        ellipsoids=[EllipseModel.from_ellipse(e) for e in grown],
+        timings_ms=PlanTimings(**clock.ms),
+    )
