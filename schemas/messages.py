@@ -123,7 +123,7 @@ class RawPath(Message):
     """The planner's piecewise-linear path, with the ellipsoids it avoided so the smoother can verify."""
 
     SCHEMA: ClassVar[str] = "cvxnav.RawPath"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # 2: plan_id and reason
 
     header: Header
     scan_seq: NonNegativeInt
@@ -131,13 +131,17 @@ class RawPath(Message):
     goal_index: NonNegativeInt
     points: list[Point]
     ellipsoids: list[EllipsoidMsg]
+    # Bumped by the planner on every replan (a re-published, trimmed plan keeps its id), so a
+    # consumer can count replans without comparing paths.
+    plan_id: NonNegativeInt = 0
+    reason: str = ""  # why there is no path (status no_path); empty otherwise
 
 
 class SmoothPath(Message):
     """The smoothed centre line; ``min_level`` = min over the curve of ||A z + b|| (> 1 is clear)."""
 
     SCHEMA: ClassVar[str] = "cvxnav.SmoothPath"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # 2: plan_id and reason
 
     header: Header
     scan_seq: NonNegativeInt
@@ -146,6 +150,8 @@ class SmoothPath(Message):
     points: list[Point]
     max_curvature: float = Field(ge=0.0)
     min_level: float
+    plan_id: NonNegativeInt = 0  # the RawPath's plan_id this curve smooths
+    reason: str = ""  # why there is no path (status no_path); empty otherwise
 
 
 class RobotState(Message):

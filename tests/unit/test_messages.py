@@ -70,7 +70,7 @@ def test_json_round_trip(model):
 
 @pytest.mark.parametrize("model", MESSAGE_MODELS, ids=lambda m: m.__name__)
 def test_encoding_names_schema_and_version(model):
-    assert model.encoding() == f"application/json;cvxnav.{model.__name__}/1"
+    assert model.encoding() == f"application/json;cvxnav.{model.__name__}/{model.VERSION}"
 
 
 def test_models_are_frozen():
