@@ -159,7 +159,7 @@ def test_wiring_keys():
 def test_export_json_schemas(tmp_path):
     paths = export_json_schemas(tmp_path)
     assert sorted(p.name for p in paths) == sorted(
-        f"cvxnav.{m.__name__}.v1.schema.json" for m in MESSAGE_MODELS
+        f"cvxnav.{m.__name__}.v{m.VERSION}.schema.json" for m in MESSAGE_MODELS
     )
     scan = json.loads((tmp_path / "cvxnav.Scan.v1.schema.json").read_text())
     assert scan["title"] == "cvxnav.Scan/1"
