@@ -1,0 +1,119 @@
+"""Planner core: eq. (2) on segments, the global route, and the convex refinement against known optima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cvxnav.geometry import Ellipse, EllipseStack, polyline_length
+from services.planner.core import intersected, plan_path
+from services.planner.refine import RefineSettings
+from services.planner.route import tangent_route
+
+BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]))
+coord = st.floats(-5, 5, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    p=st.tuples(coord, coord),
+    q=st.tuples(coord, coord),
+    center=st.tuples(coord, coord),
+    axes=st.tuples(st.floats(0.2, 3), st.floats(0.2, 3)),
+    angle=st.floats(0, np.pi),
+)
+def test_segment_test_agrees_with_dense_sampling(p, q, center, axes, angle):
+    ellipse = Ellipse.from_axes(center=center, semi_axes=axes, angle_rad=angle)
+    exact = EllipseStack.of([ellipse]).segment_levels([p], [q])[0, 0]
+    t = np.linspace(0.0, 1.0, 20001)[:, None]
+    sampled = ellipse.level(np.asarray(p) + t * (np.asarray(q) - np.asarray(p))).min()
+    assert exact <= sampled + 1e-12
+    assert sampled - exact < 1e-3  # the sampling can only miss by its resolution
+
+
+def test_intersected_names_the_crossed_ellipses():
+    ellipses = [Ellipse.circle(center=[5, 0], radius=1), Ellipse.circle(center=[5, 3], radius=1)]
+    assert intersected(np.array([[0.0, 0.0], [10.0, 0.0]]), ellipses).tolist() == [0]
+    assert intersected(np.array([[0.0, 1.6], [10.0, 1.6]]), ellipses).tolist() == []
+
+
+def _around_disc_length(distance: float, radius: float) -> float:
+    """Tangent–arc–tangent shortest path between (−d, 0) and (d, 0) round a disc of radius R at 0."""
+    tangent = np.sqrt(distance**2 - radius**2)
+    arc = radius * (np.pi - 2.0 * np.arccos(radius / distance))
+    return 2.0 * tangent + arc
+
+
+def test_shortest_path_round_one_disc_matches_the_analytic_length():
+    disc = Ellipse.circle(center=[0.0, 0.0], radius=2.0)
+    plan = plan_path(
+        start=np.array([-6.0, 0.0]),
+        heading_rad=None,
+        goals=np.array([[6.0, 0.0]]),
+        ellipses=[disc],
+        max_curvature=100.0,
+        **BOX,
+    )
+    assert plan.status == "ok"
+    level = RefineSettings().level  # the refined points keep this level: a disc of radius 2·level
+    optimum = _around_disc_length(6.0, 2.0 * level)
+    assert polyline_length(plan.points) == pytest.approx(optimum, rel=0.01)
+    assert disc.level(plan.points).min() >= level - 1e-6
+
+
+def test_route_passes_a_u_trap_instead_of_entering_it():
+    # A U of three bars opening towards the start, right on the straight line.
+    bars = [
+        Ellipse.from_axes(center=[5.0, 0.0], semi_axes=[2.0, 0.3], angle_rad=np.pi / 2),
+        Ellipse.from_axes(center=[3.5, 2.0], semi_axes=[1.7, 0.3]),
+        Ellipse.from_axes(center=[3.5, -2.0], semi_axes=[1.7, 0.3]),
+    ]
+    legs = tangent_route(start=np.array([0.0, 0.0]), goals=np.array([[10.0, 0.0]]), ellipses=bars, **BOX)
+    assert legs is not None
+    route = legs[0]
+    assert np.all(EllipseStack.of(bars).segment_levels(route[:-1], route[1:]) >= 1.0)
+    assert np.abs(route[:, 1]).max() > 2.0  # it goes round the U, not into it
+
+
+def test_enclosed_goal_is_no_path():
+    ring = [Ellipse.circle(center=[5 + 2 * np.cos(a), 2 * np.sin(a)], radius=0.8) for a in np.linspace(0, 2 * np.pi, 10)]
+    plan = plan_path(
+        start=np.array([0.0, -6.0]),
+        heading_rad=None,
+        goals=np.array([[5.0, 0.0]]),
+        ellipses=ring,
+        max_curvature=2.0,
+        **BOX,
+    )
+    assert plan.status == "no_path"
+    assert "blocked" in plan.reason
+
+
+def test_refined_path_honours_heading_curvature_and_goals_in_order():
+    obstacles = [Ellipse.circle(center=[4.0, 0.3], radius=1.2), Ellipse.circle(center=[9.0, 3.0], radius=1.0)]
+    goals = np.array([[8.0, 0.0], [12.0, 5.0]])
+    kappa = 0.5
+    plan = plan_path(
+        start=np.array([0.0, 0.0]),
+        heading_rad=0.0,
+        goals=goals,
+        ellipses=obstacles,
+        max_curvature=kappa,
+        **BOX,
+    )
+    assert plan.status == "ok"
+    z = plan.points
+    assert np.allclose(z[0], [0.0, 0.0])
+    first = z[1] - z[0]
+    assert abs(np.arctan2(first[1], first[0])) < 1e-6
+    for goal, index in zip(goals, plan.goal_indices):
+        assert np.allclose(z[index], goal, atol=1e-6)
+    assert list(plan.goal_indices) == sorted(plan.goal_indices)
+    steps = np.linalg.norm(np.diff(z, axis=0), axis=1)
+    assert steps.max() <= 0.1 + 1e-6  # the paper's step bound
+    second = np.linalg.norm(z[2:] - 2 * z[1:-1] + z[:-2], axis=1)
+    spacing = 0.5 * (steps[:-1] + steps[1:])
+    assert np.all(second <= 0.9 * kappa * spacing**2 * 1.05 + 1e-6)
+    assert len(intersected(z, obstacles)) == 0

@@ -1,0 +1,91 @@
+"""Smoother: the B-spline's end conditions and the continuous verification it must pass."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cvxnav.geometry import Ellipse
+from services.smoother.core import bspline, sample, smooth, verify
+
+BOUNDS = dict(bounds_min=np.array([-10.0, -10.0]), bounds_max=np.array([30.0, 30.0]))
+
+
+def _arc(radius: float, n: int = 60) -> np.ndarray:
+    t = np.linspace(0.0, np.pi / 2, n)
+    return np.column_stack([radius * np.sin(t), radius * (1 - np.cos(t))])
+
+
+def _heading(control: np.ndarray) -> float:
+    d = control[1] - control[0]
+    return float(np.arctan2(d[1], d[0]))
+
+
+def test_curve_starts_at_start_along_the_first_leg_and_ends_at_the_last_point():
+    control = _arc(5.0)
+    curve = bspline(control)
+    assert np.allclose(curve(0.0), control[0])
+    assert np.allclose(curve(1.0), control[-1])
+    d = curve.derivative(1)(0.0)
+    assert abs(np.arctan2(d[1], d[0]) - _heading(control)) < 1e-9
+
+
+def test_circle_of_known_radius_verifies_with_its_curvature():
+    control = _arc(5.0)
+    result = smooth(
+        control, ellipses=[], max_curvature=0.25, heading_rad=_heading(control), goals=control[-1:], goal_tolerance_m=0.01, **BOUNDS
+    )
+    assert result.verification.ok, result.verification.reason
+    # The interior follows the circle (0.2 1/m); the clamped ends bend a little more, within the bound.
+    assert 0.2 * 0.98 <= result.verification.max_curvature <= 0.25
+    assert np.linalg.norm(np.diff(result.points, axis=0), axis=1).max() <= 0.05
+
+
+def test_curvature_over_the_bound_is_rejected():
+    control = _arc(2.0)
+    result = smooth(
+        control, ellipses=[], max_curvature=0.3, heading_rad=_heading(control), goals=control[-1:], goal_tolerance_m=0.01, **BOUNDS
+    )
+    assert not result.verification.ok
+    assert "curvature" in result.verification.reason
+
+
+def test_curve_entering_an_ellipse_is_rejected_even_between_control_points():
+    # The curve cuts the control polygon's corner; a small disc sits in that corner, clear of every
+    # control point and of the polygon, but not of the curve.
+    control = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 2.0], [3.0, 0.0], [4.0, 0.0]])
+    curve = bspline(control)
+    apex = curve(0.5)
+    disc = Ellipse.circle(center=apex, radius=0.1)
+    assert disc.level(control).min() > 1.0
+    check = verify(
+        curve,
+        ellipses=[disc],
+        max_curvature=100.0,
+        start=control[0],
+        heading_rad=0.0,
+        goals=control[-1:],
+        goal_tolerance_m=0.01,
+        **BOUNDS,
+    )
+    assert not check.ok
+    assert "enters an ellipse" in check.reason
+    dense = curve(np.linspace(0, 1, 20001))
+    far = Ellipse.circle(center=apex + [0.0, 0.6], radius=0.3)
+    bound = verify(curve, ellipses=[far], max_curvature=100.0, start=control[0], heading_rad=0.0,
+                   goals=control[-1:], goal_tolerance_m=0.01, **BOUNDS).min_level
+    assert bound <= far.level(dense).min() + 1e-12  # the verified figure is a true lower bound
+
+
+def test_missed_goal_and_wrong_heading_are_rejected():
+    control = _arc(5.0)
+    common = dict(ellipses=[], max_curvature=1.0, goal_tolerance_m=0.1, **BOUNDS)
+    missed = smooth(control, heading_rad=_heading(control), goals=np.array([[0.0, 5.0]]), **common)
+    assert "misses goal" in missed.verification.reason
+    wrong = smooth(control, heading_rad=_heading(control) + 0.1, goals=control[-1:], **common)
+    assert "heading" in wrong.verification.reason
+
+
+def test_sample_spacing_is_bounded():
+    points = sample(bspline(_arc(5.0)), spacing_m=0.05)
+    assert np.linalg.norm(np.diff(points, axis=0), axis=1).max() <= 0.05
