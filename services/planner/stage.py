@@ -1,0 +1,216 @@
+"""The planner stage core: Ellipsoids + RobotState → RawPath.
+
+It keeps the current plan and replans only when it must: when there is none, when a goal has been
+reached (the remaining goals changed), when the robot has drifted off it, or when the newest ellipsoids
+invalidate it (the paper's eq. 2 intersection check, `intersected`). Otherwise it re-publishes the
+current plan trimmed to start where the robot is, under the same `plan_id`.
+
+A replan starts at the robot's pose and heading and runs through the remaining goals. When the smoothed
+curve of a new plan would fail verification, the plan is re-optimised with wider margins (the same
+repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from pydantic import BaseModel
+
+from cvxnav.geometry import Ellipse, FloatArray
+from cvxnav.runtime import Outputs, StageInputError
+from schemas.messages import Ellipsoids, RawPath, RobotState
+from schemas.scenario import Scenario
+from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
+from services.planner.core import PathPlan, intersected, plan_path
+from services.planner.refine import RefineSettings
+from services.smoother.core import smooth
+
+logger = logging.getLogger(__name__)
+
+# Keep the start this far outside an ellipse when it has to be shrunk (level ≥ 1 + margin).
+_START_LEVEL_MARGIN = 0.02
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    goals: FloatArray
+    goal_tolerance_m: float
+    bounds_min: FloatArray
+    bounds_max: FloatArray
+    max_curvature: float
+    inflation_m: float
+    refine: RefineSettings = field(default_factory=RefineSettings)
+    repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8), (1.1, 0.65))  # (level, curvature_factor)
+    max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario) -> PlannerConfig:
+        return cls(
+            goals=scenario.goals_array,
+            goal_tolerance_m=float(scenario.goal_tolerance),
+            bounds_min=np.array(scenario.bounds.min, dtype=float),
+            bounds_max=np.array(scenario.bounds.max, dtype=float),
+            max_curvature=scenario.max_curvature,
+            inflation_m=scenario.inflation_m,
+        )
+
+
+def trim_to_robot(points: FloatArray, *, position: FloatArray) -> tuple[FloatArray, float]:
+    """The plan from the vertex that starts the segment nearest the robot; and the robot's distance to it.
+
+    Trimming at a vertex (not at the foot of the perpendicular) keeps the control polygon a suffix of
+    the planned one: a foot just short of the next vertex would leave a tiny first control segment and
+    a clamped spline with a large curvature at its start.
+    """
+    if len(points) < 2:
+        return points, float(np.linalg.norm(points[0] - position)) if len(points) else np.inf
+    a, b = points[:-1], points[1:]
+    e = b - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
+    u = np.clip(np.einsum("ij,ij->i", position - a, e) / ee, 0.0, 1.0)
+    dist = np.linalg.norm(a + u[:, None] * e - position, axis=1)
+    k = int(np.argmin(dist))
+    return points[k:], float(dist[k])
+
+
+def free_start(ellipses: list[Ellipse], *, start: FloatArray, inflation_m: float) -> list[Ellipse]:
+    """Shrink the growth of any ellipse that swallows the robot, just enough to leave it outside.
+
+    A fit may stick out of a newly seen obstacle by up to its tolerance, and the robot may already be
+    closer than the full inflation to it; planning from inside an ellipse is impossible, so that
+    ellipse's margin is reduced (bisection on the growth) until the start sits at level ≥ 1.02. An
+    ellipse that contains the start even un-grown is left alone: the robot is truly inside.
+    """
+    out = []
+    for ellipse in ellipses:
+        if float(ellipse.level(start)[0]) >= 1.0 + _START_LEVEL_MARGIN:
+            out.append(ellipse)
+            continue
+        raw = ellipse.grown(-inflation_m)
+        if float(raw.level(start)[0]) < 1.0 + _START_LEVEL_MARGIN:
+            out.append(ellipse)
+            continue
+        low, high = 0.0, inflation_m
+        for _ in range(30):
+            mid = 0.5 * (low + high)
+            if float(raw.grown(mid).level(start)[0]) >= 1.0 + _START_LEVEL_MARGIN:
+                low = mid
+            else:
+                high = mid
+        out.append(raw.grown(low))
+    return out
+
+
+class PlannerStage:
+    def __init__(self, *, config: PlannerConfig) -> None:
+        self.config = config
+        self.state: RobotState | None = None
+        self.plan: FloatArray | None = None  # the current plan (points), None when there is none
+        self.plan_goal_base = 0  # goals reached when the current plan was made
+        self.plan_id = 0
+        self._seq = 0
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario) -> PlannerStage:
+        return cls(config=PlannerConfig.from_scenario(scenario))
+
+    def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        if isinstance(message, RobotState):
+            self.state = message
+            return []
+        if not isinstance(message, Ellipsoids):
+            raise StageInputError(f"planner does not handle {topic!r}")
+        if self.state is None:
+            raise StageInputError("no robot state received yet")
+        state = self.state
+        goal_base = state.goals_reached
+        if goal_base >= len(self.config.goals):
+            raise StageInputError("every goal is already reached")
+        position = np.array([state.pose.x_m, state.pose.y_m])
+        # Plan, check and publish against the same ellipses: the smoother verifies against these.
+        ellipses = free_start(ellipses_from_msgs(message.ellipsoids), start=position,
+                              inflation_m=self.config.inflation_m)
+        wire = [
+            ellipse_to_msg(ellipse, group=msg.group, cluster_id=msg.cluster_id)
+            for ellipse, msg in zip(ellipses, message.ellipsoids)
+        ]
+
+        points: FloatArray | None = None
+        if self.plan is not None and self.plan_goal_base == goal_base:
+            points = self._still_valid(position=position, goals=self.config.goals[goal_base:], ellipses=ellipses)
+        status, reason = "ok", ""
+        if points is None:
+            plan = self._replan(position=position, heading_rad=state.pose.theta_rad,
+                                goals=self.config.goals[goal_base:], ellipses=ellipses)
+            self.plan_id += 1
+            if plan.status == "ok":
+                self.plan, self.plan_goal_base = plan.points, goal_base
+                points = plan.points
+            else:
+                logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
+                self.plan = None
+                status, reason, points = "no_path", plan.reason, np.zeros((0, 2))
+        out = RawPath(
+            header=answer_header(scan_header=message.header, seq=self._seq),
+            scan_seq=message.scan_seq,
+            status=status,
+            goal_index=goal_base,
+            points=[(float(x), float(y)) for x, y in points],
+            ellipsoids=wire,
+            plan_id=self.plan_id,
+            reason=reason,
+        )
+        self._seq += 1
+        return [("raw_path", out)]
+
+    def _still_valid(self, *, position: FloatArray, goals: FloatArray, ellipses: list[Ellipse]) -> FloatArray | None:
+        """The current plan trimmed to the robot, if it is still clear and still smooths; else None.
+
+        A suffix's clamped spline starts with a different curvature from the full plan's curve at the
+        same place, so the cut moves back (2, 4, 8, … vertices, down to the whole plan, which verified
+        when it was made) until the smoothed curve verifies. Every candidate is checked against the
+        newest ellipses, so a plan that a new obstacle invalidates is never re-published.
+        """
+        assert self.plan is not None
+        config = self.config
+        trimmed, off_m = trim_to_robot(self.plan, position=position)
+        if off_m > config.max_cross_track_m or len(intersected(np.vstack([position, trimmed]), ellipses)):
+            return None
+        cut = len(self.plan) - len(trimmed)
+        back = 0
+        while True:
+            candidate = self.plan[max(0, cut - back):]
+            if len(candidate) >= 4:
+                checked = smooth(candidate, ellipses=ellipses, max_curvature=config.max_curvature,
+                                 heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
+                                 bounds_min=config.bounds_min, bounds_max=config.bounds_max)
+                if checked.verification.ok:
+                    return candidate
+            if cut - back <= 0:
+                return None
+            back = 2 if back == 0 else 2 * back
+
+    def _replan(
+        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
+    ) -> PathPlan:
+        """plan_path from the robot, re-optimised with wider margins while its smoothed curve fails."""
+        config = self.config
+        attempts = [config.refine] + [
+            replace(config.refine, level=level, curvature_factor=factor) for level, factor in config.repairs
+        ]
+        plan = None
+        for attempt in attempts:
+            plan = plan_path(start=position, heading_rad=heading_rad, goals=goals, ellipses=ellipses,
+                             bounds_min=config.bounds_min, bounds_max=config.bounds_max,
+                             max_curvature=config.max_curvature, settings=attempt)
+            if plan.status != "ok" or len(plan.points) < 4:
+                return plan
+            checked = smooth(plan.points, ellipses=ellipses, max_curvature=config.max_curvature,
+                             heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
+                             bounds_min=config.bounds_min, bounds_max=config.bounds_max)
+            if checked.verification.ok:
+                return plan
+        assert plan is not None
+        return plan

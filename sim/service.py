@@ -1,0 +1,339 @@
+"""The sim stage: the kinematic car, its range sensor and its controller, closing the loop over Zenoh.
+
+`SimCore` is the pure part (no I/O, clock and seed are arguments): it senses, accepts the pipeline's
+answers and integrates the car. `run_sim` is the Zenoh shell around it, in one of two modes:
+
+- lockstep (default): at each sensor tick the sim publishes the state and the scan, then waits (up to
+  `answer_timeout_s` of wall time) for the pipeline's answer to that scan before integrating the next
+  sensor period. The answer is the SmoothPath carrying the scan's `scan_seq` (status ok or no_path), or
+  an error status of any stage for that scan (a rejected input: the previous good path stays in force).
+  Sim time then depends only on the scenario and the seed, so two runs give the same trajectory, and a
+  run goes as fast as the pipeline answers.
+- realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
+  used whenever it arrives, as on a real robot.
+
+Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from schemas.files import LatencyStats, RunFile
+from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, SmoothPath, StageStatus, decode
+from schemas.scenario import Scenario
+from schemas.wiring import STAGES, alive_key, key, status_key
+from sim.controller import GoalTracker, PurePursuit
+from sim.sensor import RangeSensor
+from sim.vehicle import VehicleLimits, VehicleState, step
+from sim.world import World
+
+logger = logging.getLogger(__name__)
+
+Outcome = str  # "reached" | "no_path" | "timeout" | "collision"
+PIPELINE_STAGES = tuple(name for name in STAGES if name != "sim")
+
+
+def default_time_limit_s(scenario: Scenario) -> float:
+    """Sim-time budget: three times the straight-line tour at full speed, plus a minute for detours."""
+    tour = np.vstack([scenario.start.xy, scenario.goals_array])
+    length_m = float(np.sum(np.linalg.norm(np.diff(tour, axis=0), axis=1)))
+    return 3.0 * length_m / float(scenario.robot.max_speed) + 60.0
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    dt_s: float = 0.05  # integration step (one trajectory row each)
+    time_limit_s: float | None = None  # sim time; None: default_time_limit_s(scenario)
+    stale_after_s: float = 1.5  # a path older than this (sim time) is not driven on
+    no_path_patience_s: float = 2.0  # no_path this long with the car stopped ends the run
+    noise_std_m: float = 0.0  # range noise, drawn from a generator seeded with `seed`
+    seed: int = 0
+    answer_timeout_s: float = 10.0  # lockstep: wall time to wait for the answer to a scan
+    realtime: bool = False
+
+
+@dataclass
+class SimCore:
+    """The car, its sensor and controller, and the record of the run; advanced by its caller."""
+
+    scenario: Scenario
+    config: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        scenario = self.scenario
+        self.world = World.from_scenario(scenario)
+        self.limits = VehicleLimits.from_scenario(scenario)
+        self.sensor = RangeSensor.from_scenario(scenario, noise_std_m=self.config.noise_std_m)
+        self.rng = np.random.default_rng(self.config.seed) if self.config.noise_std_m > 0.0 else None
+        self.controller = PurePursuit.from_limits(self.limits)
+        self.goals = GoalTracker.from_scenario(scenario)
+        self.state = VehicleState.at_start(scenario)
+        self.time_limit_s = self.config.time_limit_s or default_time_limit_s(scenario)
+        period_s = 1.0 / float(scenario.sensor.rate_hz)
+        self.steps_per_scan = max(1, round(period_s / self.config.dt_s))
+        self.step_index = 0
+        self.scan_seq = 0
+        self.path: np.ndarray | None = None
+        self.path_time_s = -math.inf
+        self.progress_m: float | None = None
+        self.no_path_since_s: float | None = None
+        self.no_path_reason = ""
+        self.plan_ids: list[int] = []
+        self.trajectory: list[tuple[float, float, float, float]] = [self._row()]
+        self.min_clearance_m = self.world.footprint_clearance(self.state)
+        self.outcome: Outcome | None = None
+
+    @property
+    def t_s(self) -> float:
+        return self.step_index * self.config.dt_s
+
+    @property
+    def scan_due(self) -> bool:
+        return self.step_index % self.steps_per_scan == 0
+
+    def _row(self) -> tuple[float, float, float, float]:
+        return (self.t_s, self.state.x_m, self.state.y_m, self.state.theta_rad)
+
+    def robot_state(self) -> RobotState:
+        s = self.state
+        return RobotState(
+            header=Header(stamp_s=self.t_s, seq=self.scan_seq),
+            pose=Pose2D(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad),
+            speed_mps=s.speed_mps, steering_rad=s.steering_rad,
+            goal_index=min(self.goals.reached_count, len(self.goals.goals) - 1),
+            goals_reached=self.goals.reached_count, done=self.outcome is not None,
+        )
+
+    def sense(self) -> tuple[RobotState, Scan]:
+        """The state and the scan of this sensor tick; both carry the tick's seq and sim time."""
+        s = self.state
+        hits = self.sensor.scan(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad,
+                                obstacles=self.world.ray_targets, rng=self.rng)
+        scan = Scan(header=Header(stamp_s=self.t_s, seq=self.scan_seq),
+                    pose=Pose2D(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad),
+                    points=[(float(x), float(y)) for x, y in hits])
+        return self.robot_state(), scan
+
+    def accept(self, answer: SmoothPath) -> None:
+        """Take the pipeline's newest answer: a path to follow, or its verdict that there is none."""
+        if not self.plan_ids or self.plan_ids[-1] != answer.plan_id:
+            self.plan_ids.append(answer.plan_id)
+        if answer.status == "no_path":
+            self.path = None
+            self.no_path_reason = answer.reason
+            if self.no_path_since_s is None:
+                self.no_path_since_s = self.t_s
+            return
+        if answer.goal_index != self.goals.reached_count or len(answer.points) < 2:
+            return  # planned for a goal already passed: keep the current path until the replan
+        self.path = np.asarray(answer.points, dtype=float)
+        self.path_time_s = self.t_s
+        self.progress_m = None
+        self.no_path_since_s = None
+
+    @property
+    def replans(self) -> int:
+        return max(0, len(self.plan_ids) - 1)
+
+    def advance(self) -> Outcome | None:
+        """Integrate one step: follow a fresh path, else brake and hold the wheels; judge the outcome."""
+        if self.outcome is not None:
+            return self.outcome
+        fresh = self.path is not None and self.t_s - self.path_time_s <= self.config.stale_after_s
+        if fresh:
+            command = self.controller.command(self.state, path=self.path, progress_m=self.progress_m)
+            self.progress_m = command.progress_m
+            target_speed, target_steering = command.target_speed_mps, command.target_steering_rad
+        else:
+            target_speed, target_steering = 0.0, self.state.steering_rad
+        self.state = step(self.state, limits=self.limits, target_speed_mps=target_speed,
+                          target_steering_rad=target_steering, dt_s=self.config.dt_s)
+        self.step_index += 1
+        if self.scan_due:
+            self.scan_seq += 1
+        self.trajectory.append(self._row())
+        clearance = self.world.footprint_clearance(self.state)
+        self.min_clearance_m = min(self.min_clearance_m, clearance)
+        self.goals.update(x_m=self.state.x_m, y_m=self.state.y_m)
+        if clearance <= 0.0 or not self.world.footprint_in_bounds(self.state):
+            self.outcome = "collision"
+        elif self.goals.done:
+            self.outcome = "reached"
+        elif (self.no_path_since_s is not None and self.state.speed_mps == 0.0
+              and self.t_s - self.no_path_since_s >= self.config.no_path_patience_s):
+            self.outcome = "no_path"
+        elif self.t_s >= self.time_limit_s:
+            self.outcome = "timeout"
+        return self.outcome
+
+    def result(self, *, latencies_ms: list[float]) -> RunFile:
+        lat = np.asarray(latencies_ms, dtype=float)
+        stats = (LatencyStats(p50=float(np.percentile(lat, 50)), p99=float(np.percentile(lat, 99)),
+                              max=float(lat.max())) if lat.size else LatencyStats(p50=0.0, p99=0.0, max=0.0))
+        return RunFile(
+            scenario=self.scenario.name,
+            status=self.outcome or "timeout",
+            goals_reached=self.goals.reached_count,
+            trajectory=self.trajectory,
+            replans=self.replans,
+            latency_ms=stats,
+            min_clearance=float(self.min_clearance_m),
+        )
+
+
+# --------------------------------------------------------------------------- the Zenoh shell
+
+
+@dataclass
+class _Answers:
+    """What the sim hears back: paths by scan_seq, and stage errors by the scan stamp they concern."""
+
+    paths: zenoh.Subscriber
+    statuses: zenoh.Subscriber
+    published_at: dict[int, float] = field(default_factory=dict)  # scan seq -> perf_counter
+    stamps: dict[int, float] = field(default_factory=dict)  # scan seq -> sim stamp
+    latencies_ms: list[float] = field(default_factory=list)
+    rejected: dict[float, str] = field(default_factory=dict)  # scan stamp -> reason
+
+    def newest_path(self) -> SmoothPath | None:
+        """Drain the path queue; record latencies; the newest decodable path (None if none came)."""
+        newest = None
+        while (sample := self.paths.try_recv()) is not None:
+            try:
+                answer = decode(SmoothPath, sample.payload.to_bytes(), encoding=str(sample.encoding))
+            except DecodeError as error:
+                logger.warning("ignoring smooth_path: %s", error)
+                continue
+            sent = self.published_at.pop(answer.scan_seq, None)
+            if sent is not None:
+                self.latencies_ms.append((time.perf_counter() - sent) * 1e3)
+            if newest is None or answer.scan_seq >= newest.scan_seq:
+                newest = answer
+        return newest
+
+    def drain_statuses(self) -> None:
+        while (sample := self.statuses.try_recv()) is not None:
+            try:
+                status = decode(StageStatus, sample.payload.to_bytes(), encoding=str(sample.encoding))
+            except DecodeError:
+                continue
+            if status.state == "error" and status.stage != "sim":
+                self.rejected[status.header.stamp_s] = f"{status.stage}: {status.reason}"
+
+
+def wait_for_stages(session: zenoh.Session, *, prefix: str, stages: tuple[str, ...], timeout_s: float,
+                    stop_event: threading.Event | None = None) -> set[str]:
+    """Poll the liveliness tokens until every stage is up; the ones still missing after the timeout."""
+    deadline = time.monotonic() + timeout_s
+    missing = set(stages)
+    while missing and time.monotonic() < deadline and not (stop_event and stop_event.is_set()):
+        for reply in session.liveliness().get(f"{prefix}/alive/*", timeout=1.0):
+            if reply.ok is not None:
+                missing.discard(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        if missing:
+            time.sleep(0.05)
+    return missing
+
+
+def run_sim(
+    *,
+    scenario: Scenario,
+    config: SimConfig,
+    session_config: zenoh.Config,
+    prefix: str,
+    stop_event: threading.Event,
+    out_path: Path | None = None,
+    stage_wait_s: float = 30.0,
+) -> RunFile:
+    """Run the car until it reaches every goal, gives up (no_path), collides, or runs out of time."""
+    core = SimCore(scenario=scenario, config=config)
+    with zenoh.open(session_config) as session:
+        block = zenoh.CongestionControl.BLOCK
+        scan_pub = session.declare_publisher(key(prefix, "scan"), encoding=zenoh.Encoding(Scan.encoding()),
+                                             congestion_control=block)
+        state_pub = session.declare_publisher(key(prefix, "state"),
+                                              encoding=zenoh.Encoding(RobotState.encoding()),
+                                              congestion_control=block)
+        answers = _Answers(paths=session.declare_subscriber(key(prefix, "smooth_path")),
+                           statuses=session.declare_subscriber(status_key(prefix, "*")))
+        token = session.liveliness().declare_token(alive_key(prefix, "sim"))
+        missing = wait_for_stages(session, prefix=prefix, stages=PIPELINE_STAGES, timeout_s=stage_wait_s,
+                                  stop_event=stop_event)
+        if missing:
+            logger.warning("stages not alive after %.0f s: %s", stage_wait_s, ", ".join(sorted(missing)))
+
+        def publish_tick() -> None:
+            state, scan = core.sense()
+            state_pub.put(state.model_dump_json())
+            answers.published_at[scan.header.seq] = time.perf_counter()
+            answers.stamps[scan.header.seq] = scan.header.stamp_s
+            scan_pub.put(scan.model_dump_json())
+
+        try:
+            if config.realtime:
+                _realtime_loop(core=core, answers=answers, publish_tick=publish_tick, stop_event=stop_event)
+            else:
+                _lockstep_loop(core=core, answers=answers, publish_tick=publish_tick, stop_event=stop_event,
+                               timeout_s=config.answer_timeout_s)
+            state_pub.put(core.robot_state().model_dump_json())  # done=True: the run is over
+        finally:
+            token.undeclare()
+    result = core.result(latencies_ms=answers.latencies_ms)
+    if out_path is not None:
+        result.write(out_path)
+    return result
+
+
+def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event,
+                   timeout_s: float) -> None:
+    while core.outcome is None and not stop_event.is_set():
+        seq = core.scan_seq
+        publish_tick()
+        stamp = core.t_s
+        deadline = time.monotonic() + timeout_s
+        resend_at = time.monotonic() + 1.0
+        answered = False
+        while not answered and time.monotonic() < deadline and not stop_event.is_set():
+            answer = answers.newest_path()
+            if answer is not None and answer.scan_seq == seq:
+                core.accept(answer)
+                answered = True
+                break
+            answers.drain_statuses()
+            if any(abs(s - stamp) <= 1e-9 for s in answers.rejected):
+                answered = True  # a stage rejected this scan's data: the previous path stays in force
+                break
+            if seq == 0 and time.monotonic() >= resend_at:
+                publish_tick()  # routes to fresh peers may not have been up for the very first scan
+                resend_at = time.monotonic() + 1.0
+            time.sleep(0.0005)
+        answers.rejected.clear()
+        if not answered and not stop_event.is_set():
+            logger.warning("no answer to scan %d within %.1f s; driving on what the car has", seq, timeout_s)
+        for _ in range(core.steps_per_scan):
+            if core.advance() is not None:
+                return
+
+
+def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event) -> None:
+    started = time.monotonic()
+    while core.outcome is None and not stop_event.is_set():
+        if core.scan_due:
+            publish_tick()
+        answer = answers.newest_path()
+        if answer is not None:
+            core.accept(answer)
+        answers.drain_statuses()
+        answers.rejected.clear()
+        wake = started + (core.step_index + 1) * core.config.dt_s
+        stop_event.wait(max(0.0, wake - time.monotonic()))
+        core.advance()
