@@ -47,6 +47,57 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_service(args: argparse.Namespace) -> int:
+    from cvxnav.run import RunError, serve
+    from cvxnav.zenoh_config import zenoh_config_from_args
+    from schemas.wiring import default_prefix
+
+    scenario = _load(args.scenario)
+    sim_options = dict(out_path=args.out, realtime=args.realtime, time_limit_s=args.time_limit_s,
+                       noise_std_m=args.noise_std_m, seed=args.seed)
+    try:
+        return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
+                     prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
+                     sim_options=sim_options)
+    except RunError as error:
+        raise CliError(str(error)) from None
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import time
+
+    from cvxnav.run import PipelineError, RunError, RunOptions, load_stages, run_pipeline, summary
+
+    scenario = _load(args.scenario)
+    try:
+        stages = load_stages(args.stages)
+    except RunError as error:
+        raise CliError(str(error)) from None
+    options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
+                         time_limit_s=args.timeout_s, stages=stages, robot_id=args.robot_id,
+                         noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet)
+    started = time.monotonic()
+    try:
+        code, result = run_pipeline(options=options, scenario=scenario)
+    except PipelineError as error:
+        print(f"cvxnav: error: {error}", file=sys.stderr)
+        return EXIT_TIMEOUT_OR_COLLISION
+    if result is None:
+        print(f"{scenario.name}: timeout: the pipeline did not finish within the wall-clock guard", file=sys.stderr)
+        return code
+    print(summary(result, wall_s=time.monotonic() - started, out_path=args.out))
+    return code
+
+
+def _positive_float(text: str) -> float:
+    import math
+
+    value = float(text)
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
 def _cmd_schemas(args: argparse.Namespace) -> int:
     from schemas.export import export_json_schemas
 
@@ -68,6 +119,39 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
     plan.add_argument("--out", type=Path, default=Path("plan.json"), help="plan file to write")
     plan.set_defaults(handler=_cmd_plan)
+
+    from cvxnav.zenoh_config import add_zenoh_arguments
+    from schemas.wiring import STAGES
+
+    run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
+    run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
+    run.add_argument("--out", type=Path, default=Path("run.json"), help="run file to write")
+    run.add_argument("--realtime", action="store_true", help="run the sim on the wall clock (default: lockstep)")
+    run.add_argument("--timeout-s", type=_positive_float, default=None,
+                     help="sim-time limit in seconds (default: from the scenario's tour length)")
+    run.add_argument("--stages", type=Path, default=None,
+                     help='JSON file swapping stages: {"smoother": "module:factory" | {"command": [...]}}')
+    run.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
+    run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(handler=_cmd_run)
+
+    service = commands.add_parser("service", help="run one stage as a standalone process")
+    service.add_argument("name", choices=list(STAGES), help="the stage to run")
+    service.add_argument("--scenario", type=Path, default=None, help="scenario file (default: the paper's)")
+    service.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
+                         help="an alternative implementation: a factory taking the scenario")
+    sim = service.add_argument_group("sim")
+    sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
+    sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")
+    sim.add_argument("--time-limit-s", type=_positive_float, default=None, help="sim: sim-time limit")
+    sim.add_argument("--noise-std-m", type=float, default=0.0, help="sim: range noise std")
+    sim.add_argument("--seed", type=int, default=0, help="sim: noise seed")
+    add_zenoh_arguments(service)
+    service.set_defaults(handler=_cmd_service)
 
     schemas = commands.add_parser("schemas", help="write every message model as JSON Schema")
     schemas.add_argument("--out", type=Path, default=Path("schemas-json"), help="directory to write")
