@@ -1,0 +1,40 @@
+"""Growth of an ellipse by a disc: it must contain the Minkowski sum, thin ellipses included."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cvxnav.geometry import Ellipse
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    axes=st.tuples(st.floats(0.001, 4.0), st.floats(0.001, 4.0)),
+    angle=st.floats(0.0, np.pi),
+    margin=st.floats(0.01, 2.0),
+)
+def test_grown_ellipse_contains_the_minkowski_sum_with_a_disc(axes, angle, margin):
+    ellipse = Ellipse.from_axes(center=[1.0, -2.0], semi_axes=axes, angle_rad=angle)
+    grown = ellipse.grown(margin)
+    boundary = ellipse.boundary(720)
+    directions = np.linspace(0.0, 2.0 * np.pi, 72, endpoint=False)
+    disc = margin * np.column_stack([np.cos(directions), np.sin(directions)])
+    minkowski = (boundary[:, None, :] + disc[None, :, :]).reshape(-1, 2)
+    assert grown.level(minkowski).max() <= 1.0 + 1e-9
+
+
+def test_growing_semi_axes_alone_would_miss_the_tip_of_a_thin_ellipse():
+    thin = Ellipse.from_axes(center=[0.0, 0.0], semi_axes=[0.48, 0.05])
+    tip_offset = np.array([[0.48 + 0.65 * np.cos(np.pi / 4), 0.65 * np.sin(np.pi / 4)]])
+    naive = Ellipse.from_axes(center=[0.0, 0.0], semi_axes=[0.48 + 0.65, 0.05 + 0.65])
+    assert naive.level(tip_offset)[0] > 1.0
+    assert thin.grown(0.65).level(tip_offset)[0] <= 1.0
+
+
+def test_growing_a_disc_adds_the_margin_to_its_radius():
+    grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
+    assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
+    assert grown.center == pytest.approx([3.0, 4.0])
