@@ -1,10 +1,13 @@
 """Bézier smoothing of the optimised path (paper eq. 5), verified on the continuous curve.
 
 One Bézier curve of degree n through hundreds of points is numerically useless, so the smoothed path is
-a clamped uniform cubic B-spline whose control points are the optimised points: a chain of cubic Bézier
-pieces (eq. 5 with n = 3 on each span) joined with continuous curvature. It starts exactly at the start,
-tangent to z₁ − z₀ (the start heading, which the optimiser imposes), ends exactly at the last goal, and
-each piece stays in the convex hull of its four control points, within ‖Δ²z‖/6 of the control polygon.
+a uniform cubic B-spline whose control points are the optimised points: a chain of cubic Bézier pieces
+(eq. 5 with n = 3 on each span) joined with continuous curvature, each in the convex hull of its four
+control points and within ‖Δ²z‖/6 of the control polygon. At every knot its curvature is ‖Δ²z‖/s²,
+the very quantity the optimiser bounds. The ends use reflected phantom points 2z₀ − z₁ and 2zₙ − zₙ₋₁
+(natural end conditions): the curve starts exactly at z₀, tangent to z₁ − z₀ (the start heading the
+optimiser imposes) with zero curvature, and ends exactly at the last goal. (Clamped knots would also
+start at z₀, but bend up to twice as sharply on their first span.)
 
 The curve is published only if `verify` passes on the continuous curve:
 - clearance: the curve is sampled with the knots among the samples; between two samples it deviates
@@ -43,19 +46,19 @@ class Smoothed:
 
 
 def bspline(control: FloatArray) -> BSpline:
-    """Clamped uniform cubic B-spline on u ∈ [0, 1] with the given control points (≥ 4)."""
+    """Uniform cubic B-spline on u ∈ [0, 1] from z₀ to zₙ with natural ends (≥ 3 control points)."""
     control = np.asarray(control, dtype=float)
-    n = len(control)
-    if n < 4:
-        raise ValueError("a cubic B-spline needs at least 4 control points")
-    interior = np.linspace(0.0, 1.0, n - 2)[1:-1]
-    knots = np.concatenate([np.zeros(4), interior, np.ones(4)])
-    return BSpline(knots, control, 3)
+    if len(control) < 3:
+        raise ValueError("the smoother needs at least 3 points")
+    extended = np.vstack([2 * control[0] - control[1], control, 2 * control[-1] - control[-2]])
+    m = len(extended)
+    knots = (np.arange(m + 4) - 3.0) / (m - 3)  # the curve lives on [knots[3], knots[m]] = [0, 1]
+    return BSpline(knots, extended, 3, extrapolate=False)
 
 
 def _parameters(curve: BSpline) -> FloatArray:
     """Parameter samples: SAMPLES_PER_SPAN per knot span, knots included."""
-    breaks = np.unique(curve.t)
+    breaks = curve.t[3:-3]
     fine = [np.linspace(a, b, SAMPLES_PER_SPAN, endpoint=False) for a, b in zip(breaks[:-1], breaks[1:])]
     return np.concatenate([*fine, [breaks[-1]]])
 

@@ -36,8 +36,7 @@ def test_circle_of_known_radius_verifies_with_its_curvature():
         control, ellipses=[], max_curvature=0.25, heading_rad=_heading(control), goals=control[-1:], goal_tolerance_m=0.01, **BOUNDS
     )
     assert result.verification.ok, result.verification.reason
-    # The interior follows the circle (0.2 1/m); the clamped ends bend a little more, within the bound.
-    assert 0.2 * 0.98 <= result.verification.max_curvature <= 0.25
+    assert result.verification.max_curvature == pytest.approx(0.2, rel=0.02)
     assert np.linalg.norm(np.diff(result.points, axis=0), axis=1).max() <= 0.05
 
 
