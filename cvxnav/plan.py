@@ -30,7 +30,7 @@ class PlanSettings:
     max_pieces: int = 64  # ellipses per obstacle at most
     refine: RefineSettings = field(default_factory=RefineSettings)
     # When the smoothed curve fails verification, re-optimise with wider margins, in this order.
-    repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8), (1.1, 0.65))  # (level, curvature_factor)
+    repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
 
 
 @dataclass

@@ -30,6 +30,38 @@ def intersected(points: FloatArray, ellipses: list[Ellipse], *, level: float = 1
     return np.flatnonzero(np.min(levels, axis=0) < level)
 
 
+def _route(
+    *,
+    start: FloatArray,
+    heading_rad: float | None,
+    goals: FloatArray,
+    ellipses: list[Ellipse],
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    level: float,
+    lead_in_m: float,
+    extra_m: float,
+) -> list[FloatArray] | None:
+    """Legs of the shortest route, optionally after a straight lead-in and round enlarged ellipses."""
+    grown = [e.grown(extra_m) for e in ellipses] if extra_m > 0 else ellipses
+    origin = start
+    if lead_in_m > 0 and heading_rad is not None:
+        origin = start + lead_in_m * np.array([np.cos(heading_rad), np.sin(heading_rad)])
+        lead = np.vstack([start, origin])
+        if np.any(origin < bounds_min) or np.any(origin > bounds_max) or len(intersected(lead, grown, level=level)):
+            return None
+    reference = np.vstack([origin, goals])
+    if len(intersected(reference, grown, level=level)) == 0:
+        legs = [reference[k : k + 2] for k in range(len(goals))]
+    else:
+        legs = tangent_route(
+            start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level
+        )
+    if legs is not None and origin is not start:
+        legs[0] = np.vstack([start, legs[0]])
+    return legs
+
+
 def plan_path(
     *,
     start: FloatArray,
@@ -41,39 +73,60 @@ def plan_path(
     max_curvature: float,
     settings: RefineSettings = RefineSettings(),
 ) -> PathPlan:
-    """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`."""
+    """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
+
+    The route search ignores curvature, so its shortest route can demand a turn the car cannot make
+    (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
+    cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
+    heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
+    tight to turn in — and refined once more against the true ellipses.
+    """
     start = np.asarray(start, dtype=float)
     goals = np.atleast_2d(np.asarray(goals, dtype=float))
     stack = EllipseStack.of(ellipses)
     if len(stack) and np.min(stack.levels(np.vstack([start, goals]))) < 1.0:
         inside = "start" if np.min(stack.levels(start)) < 1.0 else "a goal"
         return PathPlan("no_path", np.zeros((0, 2)), reason=f"{inside} lies inside an obstacle's grown ellipse")
-    reference = np.vstack([start, goals])
-    if len(intersected(reference, ellipses, level=settings.level)) == 0:
-        legs = [reference[k : k + 2] for k in range(len(goals))]
-    else:
-        legs = tangent_route(
+    radius = 1.0 / (settings.curvature_factor * max_curvature)
+    best: PathPlan | None = None
+    best_slack = np.inf
+    for lead_in_m, extra_m in ((0.0, 0.0), (radius, 0.0), (radius, 0.5 * radius), (0.0, radius)):
+        legs = _route(
             start=start,
+            heading_rad=heading_rad,
             goals=goals,
             ellipses=ellipses,
             bounds_min=bounds_min,
             bounds_max=bounds_max,
             level=settings.level,
+            lead_in_m=lead_in_m,
+            extra_m=extra_m,
         )
-    if legs is None:
-        return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
-    try:
-        refined = refine(
-            legs=legs,
-            ellipses=ellipses,
-            bounds_min=bounds_min,
-            bounds_max=bounds_max,
-            max_curvature=max_curvature,
-            heading_rad=heading_rad,
-            settings=settings,
-        )
-    except SolverFailure as failure:
-        return PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
-    if len(intersected(refined.points, ellipses)):
-        return PathPlan("no_path", np.zeros((0, 2)), reason="refined path enters an ellipse")
-    return PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
+        if legs is None:
+            if best is None and lead_in_m == 0.0 and extra_m == 0.0:
+                return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
+            continue
+        try:
+            refined = refine(
+                legs=legs,
+                ellipses=ellipses,
+                bounds_min=bounds_min,
+                bounds_max=bounds_max,
+                max_curvature=max_curvature,
+                heading_rad=heading_rad,
+                settings=settings,
+            )
+        except SolverFailure as failure:
+            if best is None:
+                best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
+            continue
+        if len(intersected(refined.points, ellipses)):
+            continue
+        if refined.curvature_slack < best_slack:
+            best_slack = refined.curvature_slack
+            best = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
+        if refined.curvature_slack <= 1e-6:
+            break
+    if best is None:
+        return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses")
+    return best
