@@ -76,30 +76,29 @@ def trim_to_robot(points: FloatArray, *, position: FloatArray) -> tuple[FloatArr
 
 
 def free_start(ellipses: list[Ellipse], *, start: FloatArray, inflation_m: float) -> list[Ellipse]:
-    """Shrink the growth of any ellipse that swallows the robot, just enough to leave it outside.
+    """Shrink any grown ellipse that swallows the robot, about its centre, just enough to leave it outside.
 
     A fit may stick out of a newly seen obstacle by up to its tolerance, and the robot may already be
-    closer than the full inflation to it; planning from inside an ellipse is impossible, so that
-    ellipse's margin is reduced (bisection on the growth) until the start sits at level ≥ 1.02. An
-    ellipse that contains the start even un-grown is left alone: the robot is truly inside.
+    closer than the full inflation to it; planning from inside an ellipse is impossible. Scaling the
+    ellipse by s about its centre divides every level by s, so s = level(start) / 1.02 puts the start at
+    level 1.02. Growth lengthens each semi-axis aᵢ by at least the inflation r, so an ellipse scaled by
+    s ≥ maxᵢ (aᵢ − r) / aᵢ still contains the un-grown fit: the robot keeps a reduced margin but never
+    plans into the obstacle itself. An ellipse that would need more shrinking is left alone (no path).
     """
     out = []
     for ellipse in ellipses:
-        if float(ellipse.level(start)[0]) >= 1.0 + _START_LEVEL_MARGIN:
+        level = float(ellipse.level(start)[0])
+        if level >= 1.0 + _START_LEVEL_MARGIN:
             out.append(ellipse)
             continue
-        raw = ellipse.grown(-inflation_m)
-        if float(raw.level(start)[0]) < 1.0 + _START_LEVEL_MARGIN:
+        axes = ellipse.semi_axes
+        floor = float(np.max(np.clip(axes - inflation_m, 0.0, None) / axes))
+        scale = level / (1.0 + _START_LEVEL_MARGIN)
+        if scale < floor or scale <= 0.0:
             out.append(ellipse)
             continue
-        low, high = 0.0, inflation_m
-        for _ in range(30):
-            mid = 0.5 * (low + high)
-            if float(raw.grown(mid).level(start)[0]) >= 1.0 + _START_LEVEL_MARGIN:
-                low = mid
-            else:
-                high = mid
-        out.append(raw.grown(low))
+        A = ellipse.A / scale
+        out.append(Ellipse(A=A, b=-A @ ellipse.center))
     return out
 
 
