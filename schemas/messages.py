@@ -181,6 +181,34 @@ class StageStatus(Message):
     processing_ms: float = Field(ge=0.0)
 
 
+class CircleMsg(_Frozen):
+    center: Point
+    radius_m: float = Field(gt=0.0)
+
+
+class World(Message):
+    """The true map, from the sim: for the monitor and plots only (the planning stages must sense it).
+
+    Published once when the sim starts and served on request to late joiners; polygons are the
+    obstacles' outlines (a point obstacle's convex hull), circles stay exact.
+    """
+
+    SCHEMA: ClassVar[str] = "cvxnav.World"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    scenario: str
+    bounds_min: Point
+    bounds_max: Point
+    robot_width_m: float = Field(gt=0.0)
+    robot_length_m: float = Field(gt=0.0)
+    start: Pose2D
+    goals: list[Point]
+    goal_tolerance_m: float = Field(gt=0.0)
+    polygons: list[list[Point]]
+    circles: list[CircleMsg]
+
+
 MESSAGE_MODELS: tuple[type[Message], ...] = (
     Scan,
     Clusters,
@@ -189,6 +217,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     SmoothPath,
     RobotState,
     StageStatus,
+    World,
 )
 
 

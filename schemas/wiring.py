@@ -8,6 +8,10 @@ and the monitor read this table; no stage names a key of its own.
     ellipsoids --ellipsoids-->    planner
     planner    --raw_path-->      smoother
     smoother   --smooth_path-->   sim
+    sim        --world-->         monitor only (the true map; no planning stage may read it)
+
+The monitor (``MONITOR``) is a sink outside ``STAGES``: it reads every topic and every status, and
+the pipeline never waits for it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from schemas.messages import (
     Scan,
     SmoothPath,
     StageStatus,
+    World,
 )
 
 DEFAULT_ROBOT_ID = "robot1"
@@ -58,6 +63,7 @@ TOPICS: Mapping[str, Topic] = MappingProxyType(
             Topic(name="ellipsoids", model=Ellipsoids, publisher="ellipsoids"),
             Topic(name="raw_path", model=RawPath, publisher="planner"),
             Topic(name="smooth_path", model=SmoothPath, publisher="smoother"),
+            Topic(name="world", model=World, publisher="sim"),
         )
     }
 )
@@ -66,7 +72,7 @@ STAGES: Mapping[str, StageSpec] = MappingProxyType(
     {
         spec.name: spec
         for spec in (
-            StageSpec(name="sim", subscribes=("smooth_path",), publishes=("scan", "state")),
+            StageSpec(name="sim", subscribes=("smooth_path",), publishes=("scan", "state", "world")),
             StageSpec(name="sensing", subscribes=("scan",), publishes=("clusters",)),
             StageSpec(name="ellipsoids", subscribes=("clusters",), publishes=("ellipsoids",)),
             StageSpec(name="planner", subscribes=("ellipsoids", "state"), publishes=("raw_path",)),
@@ -76,6 +82,9 @@ STAGES: Mapping[str, StageSpec] = MappingProxyType(
 )
 
 STATUS_MODEL: type[Message] = StageStatus
+
+# The observer: subscribes to every topic (and every status), publishes nothing.
+MONITOR = StageSpec(name="monitor", subscribes=tuple(TOPICS), publishes=())
 
 
 def default_prefix(*, robot_id: str = DEFAULT_ROBOT_ID) -> str:
@@ -97,6 +106,15 @@ def status_key(prefix: str, stage: str) -> str:
 def alive_key(prefix: str, stage: str) -> str:
     """The liveliness token ``stage`` holds while it runs."""
     return f"{prefix}/alive/{stage}"
+
+
+def topic_of(prefix: str, key_expr: str) -> str | None:
+    """The topic name of an absolute key under ``prefix`` (None for status, liveliness or foreign keys)."""
+    head = prefix + "/"
+    if not key_expr.startswith(head):
+        return None
+    name = key_expr[len(head):]
+    return name if name in TOPICS else None
 
 
 def model_for(topic: str) -> type[Message]:

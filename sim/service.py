@@ -29,10 +29,12 @@ import zenoh
 
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, SmoothPath, StageStatus, decode
+from schemas.messages import World as WorldMessage
 from schemas.scenario import Scenario
 from schemas.wiring import STAGES, alive_key, key, status_key
 from sim.controller import GoalTracker, PurePursuit
 from sim.sensor import RangeSensor
+from sim.truth import world_message
 from sim.vehicle import VehicleLimits, VehicleState, step
 from sim.world import World
 
@@ -244,6 +246,15 @@ def wait_for_stages(session: zenoh.Session, *, prefix: str, stages: tuple[str, .
     return missing
 
 
+def _publish_world(session: zenoh.Session, *, scenario: Scenario, prefix: str) -> zenoh.Queryable:
+    """Put the true map once, and answer gets on its key, so a monitor that joins later still has it."""
+    world = world_message(scenario)
+    payload, encoding = world.model_dump_json(), zenoh.Encoding(WorldMessage.encoding())
+    world_key = key(prefix, "world")
+    session.put(world_key, payload, encoding=encoding)
+    return session.declare_queryable(world_key, lambda query: query.reply(world_key, payload, encoding=encoding))
+
+
 def run_sim(
     *,
     scenario: Scenario,
@@ -266,6 +277,7 @@ def run_sim(
         answers = _Answers(paths=session.declare_subscriber(key(prefix, "smooth_path")),
                            statuses=session.declare_subscriber(status_key(prefix, "*")))
         token = session.liveliness().declare_token(alive_key(prefix, "sim"))
+        world_queryable = _publish_world(session, scenario=scenario, prefix=prefix)
         missing = wait_for_stages(session, prefix=prefix, stages=PIPELINE_STAGES, timeout_s=stage_wait_s,
                                   stop_event=stop_event)
         if missing:
@@ -287,6 +299,7 @@ def run_sim(
             state_pub.put(core.robot_state().model_dump_json())  # done=True: the run is over
         finally:
             token.undeclare()
+            world_queryable.undeclare()
     result = core.result(latencies_ms=answers.latencies_ms)
     if out_path is not None:
         result.write(out_path)

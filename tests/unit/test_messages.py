@@ -23,10 +23,12 @@ from schemas.messages import (
     Scan,
     SmoothPath,
     StageStatus,
+    World,
     decode,
     encode,
 )
-from schemas.wiring import STAGES, TOPICS, alive_key, default_prefix, key, model_for, status_key
+from schemas.messages import CircleMsg
+from schemas.wiring import MONITOR, STAGES, TOPICS, alive_key, default_prefix, key, model_for, status_key
 
 HEADER = Header(stamp_s=1.5, seq=3)
 ELLIPSE = EllipsoidMsg(A=((2.0, 0.5), (0.5, 1.0)), b=(-1.0, 0.25), group=0, cluster_id=4)
@@ -54,6 +56,12 @@ EXAMPLES: dict[type[BaseModel], BaseModel] = {
     StageStatus: StageStatus(
         header=HEADER, stage="planner", state="error", reason="solver failed",
         input_key="cvxnav/robot1/ellipsoids", processing_ms=12.5,
+    ),
+    World: World(
+        header=HEADER, scenario="paper", bounds_min=(-1.0, -1.0), bounds_max=(20.0, 20.0),
+        robot_width_m=0.3, robot_length_m=0.6, start=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0),
+        goals=[(10.0, 10.0)], goal_tolerance_m=0.3, polygons=[[(1.0, 1.0), (2.0, 1.0), (2.0, 2.0)]],
+        circles=[CircleMsg(center=(5.0, 5.0), radius_m=1.0)],
     ),
 }
 
@@ -137,7 +145,8 @@ def test_negative_stamp_and_empty_cluster_rejected():
 def test_wiring_every_topic_has_its_publisher_and_a_subscriber():
     for topic in TOPICS.values():
         assert topic.name in STAGES[topic.publisher].publishes
-        assert any(topic.name in spec.subscribes for spec in STAGES.values())
+        assert any(topic.name in spec.subscribes for spec in (*STAGES.values(), MONITOR))
+    assert set(MONITOR.subscribes) == set(TOPICS)
     for spec in STAGES.values():
         for name in spec.publishes:
             assert TOPICS[name].publisher == spec.name
