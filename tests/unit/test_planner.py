@@ -117,3 +117,17 @@ def test_refined_path_honours_heading_curvature_and_goals_in_order():
     spacing = 0.5 * (steps[:-1] + steps[1:])
     assert np.all(second <= 0.9 * kappa * spacing**2 * 1.05 + 1e-6)
     assert len(intersected(z, obstacles)) == 0
+
+
+def test_direct_clarabel_route_agrees_with_the_cvxpy_model():
+    from services.planner.refine import refine
+
+    obstacles = [Ellipse.circle(center=[4.0, 0.3], radius=1.2), Ellipse.from_axes(center=[9.0, 2.0], semi_axes=[1.5, 0.5], angle_rad=0.4)]
+    legs = tangent_route(start=np.array([0.0, 0.0]), goals=np.array([[8.0, 0.0], [12.0, 5.0]]), ellipses=obstacles, **BOX)
+    results = {
+        backend: refine(legs=legs, ellipses=obstacles, max_curvature=0.8, heading_rad=0.3,
+                        settings=RefineSettings(backend=backend), **BOX)
+        for backend in ("cvxpy", "clarabel")
+    }
+    assert results["cvxpy"].iterations == results["clarabel"].iterations
+    assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
