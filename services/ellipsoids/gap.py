@@ -6,8 +6,11 @@ closest-point problem is the second-order cone programme
     minimise    ‖x − y‖₂
     subject to  ‖A₁ x + b₁‖₂ ≤ 1,   ‖A₂ y + b₂‖₂ ≤ 1,
 
-whose optimum is 0 exactly when the ellipses intersect. It is built once with Parameters (DPP:
-`A₁ @ x` is parameter × variable) and re-solved for every pair.
+whose optimum is 0 exactly when the ellipses intersect. Two routes solve it: Clarabel called directly
+(the default: a three-cone problem of five variables, no modelling layer) and the same programme in
+cvxpy, built once with Parameters (DPP: `A₁ @ x` is parameter × variable), which the tests hold the
+direct route to. cvxpy is imported on first use of its route: the import alone costs about 0.6 s, more
+than a whole plan on a small map.
 """
 
 from __future__ import annotations
@@ -15,8 +18,9 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import cvxpy as cp
+import clarabel
 import numpy as np
+from scipy import sparse
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -39,7 +43,9 @@ class Gap:
 
 
 @functools.lru_cache(maxsize=1)
-def _gap_problem() -> tuple[cp.Problem, tuple[cp.Parameter, ...], cp.Variable, cp.Variable]:
+def _gap_problem():
+    import cvxpy as cp
+
     A1, A2 = cp.Parameter((2, 2), name="A1"), cp.Parameter((2, 2), name="A2")
     b1, b2 = cp.Parameter(2, name="b1"), cp.Parameter(2, name="b2")
     x, y = cp.Variable(2, name="x"), cp.Variable(2, name="y")
@@ -50,23 +56,58 @@ def _gap_problem() -> tuple[cp.Problem, tuple[cp.Parameter, ...], cp.Variable, c
     return problem, (A1, b1, A2, b2), x, y
 
 
-def ellipse_gap(e1: Ellipse, e2: Ellipse, *, solver: str = "CLARABEL") -> Gap:
-    """Eq. (3) with ellipsoid constraints: the closest points of two ellipses and their distance.
+def _gap_cvxpy(A1, b1, A2, b2, *, solver: str) -> tuple[FloatArray, FloatArray]:
+    import cvxpy as cp
 
-    Solved in coordinates shifted to the midpoint of the two centres (translation leaves the gap
-    unchanged and keeps the problem data well scaled). Not thread-safe: the problem is shared.
-    """
-    shift = 0.5 * (e1.center + e2.center)
-    problem, (A1, b1, A2, b2), x, y = _gap_problem()
-    A1.value, b1.value = e1.A, e1.b + e1.A @ shift
-    A2.value, b2.value = e2.A, e2.b + e2.A @ shift
+    problem, (pA1, pb1, pA2, pb2), x, y = _gap_problem()
+    pA1.value, pb1.value, pA2.value, pb2.value = A1, b1, A2, b2
     try:
         problem.solve(solver=solver)
     except cp.error.SolverError as exc:
         raise GapError(f"ellipse gap solve failed with {solver}: {exc}") from exc
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or x.value is None:
         raise GapError(f"ellipse gap solve with {solver} ended with status {problem.status!r}")
-    p1, p2 = x.value + shift, y.value + shift
+    return x.value, y.value
+
+
+_CLARABEL_SETTINGS = clarabel.DefaultSettings()
+_CLARABEL_SETTINGS.verbose = False
+
+
+def _gap_clarabel(A1, b1, A2, b2) -> tuple[FloatArray, FloatArray]:
+    """Variables v = (x, y, t): minimise t s.t. (t, x − y), (1, A₁x + b₁), (1, A₂y + b₂) ∈ SOC(3).
+
+    Clarabel's form is b − A v ∈ K, so each cone's rows hold minus the coefficients.
+    """
+    A = np.zeros((9, 5))
+    b = np.zeros(9)
+    A[0, 4] = -1.0  # t
+    A[1:3, 0:2] = -np.eye(2)  # x − y
+    A[1:3, 2:4] = np.eye(2)
+    b[3], A[4:6, 0:2], b[4:6] = 1.0, -A1, b1
+    b[6], A[7:9, 2:4], b[7:9] = 1.0, -A2, b2
+    q = np.array([0.0, 0.0, 0.0, 0.0, 1.0])
+    cones = [clarabel.SecondOrderConeT(3)] * 3
+    solution = clarabel.DefaultSolver(
+        sparse.csc_matrix((5, 5)), q, sparse.csc_matrix(A), b, cones, _CLARABEL_SETTINGS
+    ).solve()
+    if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
+        raise GapError(f"ellipse gap solve with Clarabel ended with status {solution.status}")
+    v = np.asarray(solution.x)
+    return v[0:2], v[2:4]
+
+
+def ellipse_gap(e1: Ellipse, e2: Ellipse, *, method: str = "clarabel", solver: str = "CLARABEL") -> Gap:
+    """Eq. (3) with ellipsoid constraints: the closest points of two ellipses and their distance.
+
+    Solved in coordinates shifted to the midpoint of the two centres (translation leaves the gap
+    unchanged and keeps the problem data well scaled). `method` "cvxpy" solves the cvxpy model with
+    `solver` (not thread-safe: the problem is shared).
+    """
+    shift = 0.5 * (e1.center + e2.center)
+    data = (e1.A, e1.b + e1.A @ shift, e2.A, e2.b + e2.A @ shift)
+    x, y = _gap_cvxpy(*data, solver=solver) if method == "cvxpy" else _gap_clarabel(*data)
+    p1, p2 = x + shift, y + shift
     return Gap(distance_m=max(0.0, float(np.linalg.norm(p1 - p2))), point_1=p1, point_2=p2)
 
 
@@ -78,7 +119,7 @@ def group_ellipses(
     *,
     min_gap_m: float,
     connected: np.ndarray | None = None,
-    solver: str = "CLARABEL",
+    method: str = "clarabel",
 ) -> np.ndarray:
     """Group labels: ellipses closer than `min_gap_m` (= 2 r, the robot cannot pass) share a group.
 
@@ -107,7 +148,7 @@ def group_ellipses(
     links = [(i[certain], j[certain])]
     labels = _components(m, connected, links)
     for a, b in zip(i[~certain], j[~certain]):
-        if labels[a] != labels[b] and ellipse_gap(ellipses[a], ellipses[b], solver=solver).distance_m < min_gap_m:
+        if labels[a] != labels[b] and ellipse_gap(ellipses[a], ellipses[b], method=method).distance_m < min_gap_m:
             links.append((np.array([a]), np.array([b])))
     return _components(m, connected, links)
 

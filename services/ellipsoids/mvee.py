@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import functools
 
-import cvxpy as cp
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import ConvexHull
@@ -38,7 +37,7 @@ from cvxnav.geometry import Ellipse, FloatArray
 
 __all__ = ["FitError", "mvee", "mvee_fast"]
 
-_ACCEPTED_STATUSES = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+_ACCEPTED_STATUSES = ("optimal", "optimal_inaccurate")  # cvxpy's status strings
 # A solver answer whose worst point sits further out than this is a failed solve, not rounding.
 _MAX_SOLVER_VIOLATION = 1e-4
 
@@ -111,8 +110,14 @@ def _bucket(count: int) -> int:
 
 
 @functools.lru_cache(maxsize=None)
-def _mvee_problem(size: int) -> tuple[cp.Problem, cp.Parameter, cp.Variable, cp.Variable]:
-    """Eq. (1) for `size` points, built once; the points are a (2, size) Parameter (DPP: A @ P)."""
+def _mvee_problem(size: int):
+    """Eq. (1) for `size` points, built once; the points are a (2, size) Parameter (DPP: A @ P).
+
+    cvxpy is imported here, on first use: the import alone costs about 0.6 s, and the covers the
+    planner builds use the numpy route below.
+    """
+    import cvxpy as cp
+
     points = cp.Parameter((2, size), name="points")
     A = cp.Variable((2, 2), PSD=True, name="A")
     b = cp.Variable(2, name="b")
@@ -134,9 +139,11 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
     padded = np.vstack([vertices, np.repeat(vertices[:1], size - len(vertices), axis=0)])
     problem, param, A, b = _mvee_problem(size)
     param.value = padded.T
+    from cvxpy.error import SolverError
+
     try:
         problem.solve(solver=solver)
-    except cp.error.SolverError as exc:
+    except SolverError as exc:
         raise FitError(f"MVEE solve failed with {solver}: {exc}") from exc
     if problem.status not in _ACCEPTED_STATUSES or A.value is None:
         raise FitError(f"MVEE solve with {solver} ended with status {problem.status!r}")

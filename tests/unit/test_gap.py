@@ -66,3 +66,13 @@ def test_group_needs_the_socp_for_elongated_ellipses():
 def test_group_of_nothing_and_of_one():
     assert group_ellipses([], min_gap_m=1.0).shape == (0,)
     assert list(group_ellipses([Ellipse.circle(center=(0, 0), radius=1.0)], min_gap_m=1.0)) == [0]
+
+
+def test_direct_clarabel_gap_agrees_with_the_cvxpy_model():
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        e1 = Ellipse.from_axes(center=rng.uniform(-3, 3, 2), semi_axes=rng.uniform(0.1, 2, 2), angle_rad=rng.uniform(0, 3))
+        e2 = Ellipse.from_axes(center=rng.uniform(-3, 3, 2) + 5, semi_axes=rng.uniform(0.1, 2, 2), angle_rad=rng.uniform(0, 3))
+        direct = ellipse_gap(e1, e2)
+        model = ellipse_gap(e1, e2, method="cvxpy")
+        assert direct.distance_m == pytest.approx(model.distance_m, abs=1e-6)
