@@ -47,11 +47,29 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    import threading
+
+    from cvxnav.runtime import install_signal_handlers
+    from cvxnav.zenoh_config import zenoh_config_from_args
+    from schemas.wiring import default_prefix
+    from services.monitor.stage import monitor_targets, run_monitor
+
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    targets = monitor_targets(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url)
+    run_monitor(session_config=zenoh_config_from_args(args), prefix=args.prefix or default_prefix(robot_id=args.robot_id),
+                targets=targets, stop_event=stop)
+    return EXIT_OK
+
+
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.run import RunError, serve
     from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
 
+    if args.name == "monitor":
+        return _cmd_monitor(args)
     scenario = _load(args.scenario)
     sim_options = dict(out_path=args.out, realtime=args.realtime, time_limit_s=args.time_limit_s,
                        noise_std_m=args.noise_std_m, seed=args.seed)
@@ -75,7 +93,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
                          time_limit_s=args.timeout_s, stages=stages, robot_id=args.robot_id,
-                         noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet)
+                         noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
+                         monitor_args=_monitor_args(args))
     started = time.monotonic()
     try:
         code, result = run_pipeline(options=options, scenario=scenario)
@@ -87,6 +106,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return code
     print(summary(result, wall_s=time.monotonic() - started, out_path=args.out))
     return code
+
+
+def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
+    """`cvxnav service monitor` options for `run --record/--viewer/--connect`; None: no monitor."""
+    from services.monitor.stage import monitor_arguments
+
+    if args.record is None and not args.viewer and args.viewer_url is None:
+        return None
+    record = args.record.resolve() if args.record is not None else None
+    return tuple(monitor_arguments(record=record, viewer=args.viewer, viewer_url=args.viewer_url))
 
 
 def _positive_float(text: str) -> float:
@@ -135,10 +164,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--record", type=Path, default=None, metavar="FILE.rrd",
+                     help="start the monitor stage and save a rerun recording")
+    run.add_argument("--viewer", action="store_true", help="start the monitor stage and spawn a rerun viewer")
+    run.add_argument("--connect", dest="viewer_url", default=None, metavar="URL",
+                     help="start the monitor stage and stream to a rerun viewer at URL "
+                          "(e.g. rerun+http://127.0.0.1:9876/proxy)")
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")
-    service.add_argument("name", choices=list(STAGES), help="the stage to run")
+    service.add_argument("name", choices=[*STAGES, "monitor"], help="the stage to run (monitor: the rerun sink)")
     service.add_argument("--scenario", type=Path, default=None, help="scenario file (default: the paper's)")
     service.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
     service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
@@ -150,6 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--time-limit-s", type=_positive_float, default=None, help="sim: sim-time limit")
     sim.add_argument("--noise-std-m", type=float, default=0.0, help="sim: range noise std")
     sim.add_argument("--seed", type=int, default=0, help="sim: noise seed")
+    monitor = service.add_argument_group("monitor (rerun; default: --record cvxnav-monitor.rrd)")
+    monitor.add_argument("--record", type=Path, default=None, metavar="FILE.rrd", help="monitor: save a recording")
+    monitor.add_argument("--viewer", action="store_true", help="monitor: spawn a rerun viewer")
+    monitor.add_argument("--viewer-url", default=None, metavar="URL",
+                         help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
 

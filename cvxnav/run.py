@@ -189,6 +189,7 @@ class RunOptions:
     startup_timeout_s: float = 60.0
     stop_grace_s: float = 5.0
     show_progress: bool = True
+    monitor_args: tuple[str, ...] | None = None  # start the rerun monitor with these service options
 
 
 @dataclass
@@ -209,7 +210,7 @@ class Supervisor:
         self.options = options
         self.scenario = scenario
         self.prefix = default_prefix(robot_id=options.robot_id)
-        names = list(PIPELINE) + ["sim"]
+        names = list(PIPELINE) + ["sim"] + (["monitor"] if options.monitor_args is not None else [])
         ports = free_ports(len(names) + 1)
         self.endpoints = {name: f"tcp/127.0.0.1:{port}" for name, port in zip(names, ports)}
         self.own_endpoint = f"tcp/127.0.0.1:{ports[-1]}"
@@ -234,6 +235,8 @@ class Supervisor:
             cmd += ["--scenario", scenario_arg]
         if choice is not None and choice.entry_point is not None and choice.entry_point != DEFAULT_FACTORIES[name]:
             cmd += ["--entry", choice.entry_point]
+        if name == "monitor":
+            cmd += list(self.options.monitor_args or ())
         if name == "sim":
             cmd += ["--out", str(self.options.out_path), "--seed", str(self.options.seed),
                     "--noise-std-m", repr(self.options.noise_std_m)]
@@ -277,7 +280,7 @@ def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: fl
     from sim.service import wait_for_stages
 
     deadline = time.monotonic() + timeout_s
-    missing = set(PIPELINE)
+    missing = {child.name for child in supervisor.children}  # the pipeline, and the monitor if asked
     while missing and time.monotonic() < deadline:
         supervisor.check_alive()
         missing = wait_for_stages(session, prefix=supervisor.prefix, stages=tuple(missing), timeout_s=1.0)
@@ -313,6 +316,8 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
             path_sub = session.declare_subscriber(key(supervisor.prefix, "smooth_path"), on_path)
             for name in PIPELINE:
                 supervisor.start(name)
+            if options.monitor_args is not None:
+                supervisor.start("monitor")  # before the sim, so it sees the world and the first scan
             _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s)
             sim = supervisor.start("sim")
             wall_limit_s = time_limit_s * (1.5 if options.realtime else 1.0) + options.startup_timeout_s

@@ -1,0 +1,313 @@
+"""The monitor stage: every key under the prefix, logged to rerun on a tree that mirrors the pipeline.
+
+    world/obstacles, world/bounds, goals      the true map (from the sim's World message), static
+    sensing/scan, sensing/clusters            what the sensor saw and how it was grouped
+    ellipsoids/grown                          the inflated ellipses the planner avoids
+    planner/raw_path, smoother/path           the plan before and after smoothing
+    sim/robot, sim/trail                      the footprint and where it has been
+    status/<stage>/processing_ms              per-stage processing time (Scalars); errors as TextLog
+    status/sim/speed_mps, status/smoother/*   the car's speed, the published curve's checks
+    latency/scan_to_path_ms                   scan seen → smoothed path for that scan seen, here
+
+Time is the message stamp on the ``sim_time`` timeline (``rr.set_time(duration=stamp_s)``), so a
+recording replays on the pipeline's clock whatever the monitor's own delays. The monitor is a sink:
+its subscriber callback only enqueues (it never slows a publisher that uses congestion control
+BLOCK), one worker thread decodes and logs, and a full queue drops samples and counts them.
+
+Rerun's analytics are switched off for this process and any viewer it spawns: the SDK has no
+opt-out variable, but its pipeline skips analytics whenever ``CI`` is set
+(``re_analytics/src/native/pipeline.rs``); ``disable_rerun_analytics`` sets it before rerun loads.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+from pydantic import BaseModel
+
+from schemas.messages import (
+    Clusters,
+    DecodeError,
+    Ellipsoids,
+    RawPath,
+    RobotState,
+    Scan,
+    SmoothPath,
+    StageStatus,
+    World,
+    decode,
+)
+from schemas.wiring import MONITOR, alive_key, key, model_for, topic_of
+from services.monitor.shapes import circle_outline, closed, ellipse_outline, footprint_outline
+
+logger = logging.getLogger(__name__)
+
+APPLICATION_ID = "cvxnav"
+TIMELINE = "sim_time"
+QUEUE_CAPACITY = 20_000
+TRAIL_MAX_POINTS = 5_000
+
+
+def disable_rerun_analytics() -> None:
+    """Turn rerun's usage analytics off in this process and its children (the viewer it spawns)."""
+    os.environ.setdefault("CI", "1")
+
+
+@dataclass(frozen=True)
+class RerunTargets:
+    """Where the recording goes: a file, a spawned viewer, a remote viewer's gRPC URL (any mix)."""
+
+    record_path: Path | None = None
+    spawn_viewer: bool = False
+    viewer_url: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return self.record_path is not None or self.spawn_viewer or self.viewer_url is not None
+
+
+def open_recording(*, targets: RerunTargets, recording_id: str | None = None):
+    """A rerun recording stream sending to every target, with the pipeline layout as its blueprint."""
+    disable_rerun_analytics()
+    import rerun as rr
+
+    recording = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    sinks = []
+    if targets.record_path is not None:
+        sinks.append(rr.FileSink(str(targets.record_path)))
+    if targets.spawn_viewer:
+        recording.spawn(connect=False)
+        sinks.append(rr.GrpcSink())
+    if targets.viewer_url is not None:
+        sinks.append(rr.GrpcSink(targets.viewer_url))
+    if sinks:
+        recording.set_sinks(*sinks, default_blueprint=blueprint())
+    return recording
+
+
+def blueprint():
+    """The map on the left, the time series (latency, per-stage processing, speed) on the right."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(
+                name="map", origin="/",
+                contents=["world/**", "goals/**", "sensing/**", "ellipsoids/**", "planner/**", "smoother/**",
+                          "sim/**"],
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="latency", origin="latency"),
+                rrb.TimeSeriesView(name="stages", origin="status"),
+            ),
+            column_shares=[3, 2],
+        ),
+    )
+
+
+@dataclass
+class MonitorCounts:
+    """What the monitor saw, by key: for tests and the closing log line."""
+
+    logged: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+    dropped: int = 0
+
+
+class RerunLogger:
+    """Turns one decoded pipeline message into rerun log calls on the entity tree (module docstring)."""
+
+    def __init__(self, *, recording) -> None:
+        import rerun as rr
+
+        self._rr = rr
+        self._rec = recording
+        self._robot_size_m: tuple[float, float] | None = None
+        self._trail: list[tuple[float, float]] = []
+        self._scan_seen_s: dict[int, float] = {}  # scan seq -> monotonic time the monitor saw it
+
+    def log(self, *, topic: str | None, stage: str | None, message: BaseModel) -> None:
+        header = getattr(message, "header", None)
+        if header is not None:
+            self._rec.set_time(TIMELINE, duration=header.stamp_s)
+        if isinstance(message, StageStatus):
+            self._status(stage=stage or message.stage, status=message)
+            return
+        handler = getattr(self, f"_{topic}")
+        handler(message)
+
+    # -- one method per topic of the wiring table (MONITOR.subscribes)
+
+    def _world(self, world: World) -> None:
+        rr, rec = self._rr, self._rec
+        outlines = [closed(np.asarray(p)) for p in world.polygons]
+        outlines += [circle_outline(center=np.asarray(c.center), radius_m=c.radius_m) for c in world.circles]
+        rec.log("world/obstacles", rr.LineStrips2D(outlines, colors=[40, 40, 40], radii=0.04), static=True)
+        lo, hi = np.asarray(world.bounds_min), np.asarray(world.bounds_max)
+        rec.log("world/bounds", rr.Boxes2D(mins=[lo], sizes=[hi - lo], colors=[160, 160, 160]), static=True)
+        rec.log("goals", rr.Points2D(world.goals, radii=world.goal_tolerance_m, colors=[0, 160, 0],
+                                     labels=[f"goal {i + 1}" for i in range(len(world.goals))]), static=True)
+        self._robot_size_m = (world.robot_width_m, world.robot_length_m)
+
+    def _scan(self, scan: Scan) -> None:
+        self._scan_seen_s[scan.header.seq] = time.monotonic()
+        if len(self._scan_seen_s) > 1000:
+            self._scan_seen_s.pop(min(self._scan_seen_s))
+        self._rec.log("sensing/scan", self._rr.Points2D(scan.points or np.zeros((0, 2)), radii=0.03,
+                                                         colors=[230, 120, 0]))
+
+    def _clusters(self, clusters: Clusters) -> None:
+        points = [p for c in clusters.clusters for p in c.points]
+        ids = [c.cluster_id for c in clusters.clusters for _ in c.points]
+        self._rec.log("sensing/clusters", self._rr.Points2D(points or np.zeros((0, 2)), class_ids=ids or None,
+                                                             radii=0.05))
+
+    def _ellipsoids(self, ellipsoids: Ellipsoids) -> None:
+        outlines = [ellipse_outline(A=np.asarray(e.A), b=np.asarray(e.b)) for e in ellipsoids.ellipsoids]
+        groups = [e.group for e in ellipsoids.ellipsoids]
+        self._rec.log("ellipsoids/grown", self._rr.LineStrips2D(outlines, class_ids=groups or None, radii=0.03))
+
+    def _raw_path(self, path: RawPath) -> None:
+        strips = [path.points] if len(path.points) >= 2 else []
+        self._rec.log("planner/raw_path", self._rr.LineStrips2D(strips, colors=[200, 0, 200], radii=0.03))
+        if path.status == "no_path":
+            self._rec.log("planner/log", self._rr.TextLog(f"no_path: {path.reason}", level="WARN"))
+
+    def _smooth_path(self, path: SmoothPath) -> None:
+        rr, rec = self._rr, self._rec
+        strips = [path.points] if len(path.points) >= 2 else []
+        rec.log("smoother/path", rr.LineStrips2D(strips, colors=[0, 90, 220], radii=0.05))
+        rec.log("status/smoother/max_curvature", rr.Scalars(path.max_curvature))
+        seen_s = self._scan_seen_s.pop(path.scan_seq, None)
+        if seen_s is not None:
+            rec.log("latency/scan_to_path_ms", rr.Scalars((time.monotonic() - seen_s) * 1e3))
+
+    def _state(self, state: RobotState) -> None:
+        rr, rec = self._rr, self._rec
+        pose = state.pose
+        self._trail.append((pose.x_m, pose.y_m))
+        del self._trail[:-TRAIL_MAX_POINTS]
+        width_m, length_m = self._robot_size_m or (0.3, 0.6)
+        outline = footprint_outline(x_m=pose.x_m, y_m=pose.y_m, theta_rad=pose.theta_rad, width_m=width_m,
+                                    length_m=length_m)
+        rec.log("sim/robot", rr.LineStrips2D([outline], colors=[220, 0, 0], radii=0.03))
+        if len(self._trail) >= 2:
+            rec.log("sim/trail", rr.LineStrips2D([self._trail], colors=[220, 80, 80], radii=0.02))
+        rec.log("status/sim/speed_mps", rr.Scalars(state.speed_mps))
+
+    def _status(self, *, stage: str, status: StageStatus) -> None:
+        rr, rec = self._rr, self._rec
+        rec.log(f"status/{stage}/processing_ms", rr.Scalars(status.processing_ms))
+        if status.state == "error":
+            rec.log(f"status/{stage}/log", rr.TextLog(status.reason, level="ERROR"))
+
+
+def _message_of(*, prefix: str, key_expr: str, payload: bytes, encoding: str) -> tuple[str | None, str | None,
+                                                                                       BaseModel] | None:
+    """(topic, stage, message) for a key of the pipeline; None for keys the monitor does not draw."""
+    topic = topic_of(prefix, key_expr)
+    if topic is not None and topic in MONITOR.subscribes:
+        return topic, None, decode(model_for(topic), payload, encoding=encoding)
+    status_head = f"{prefix}/status/"
+    if key_expr.startswith(status_head):
+        stage = key_expr[len(status_head):]
+        return None, stage, decode(StageStatus, payload, encoding=encoding)
+    return None
+
+
+def run_monitor(
+    *,
+    session_config: zenoh.Config,
+    prefix: str,
+    targets: RerunTargets,
+    stop_event: threading.Event,
+    ready_event: threading.Event | None = None,
+    drain_timeout_s: float = 2.0,
+    recording_id: str | None = None,
+) -> MonitorCounts:
+    """Mirror every key under ``prefix`` into rerun until ``stop_event``; then drain and flush."""
+    recording = open_recording(targets=targets, recording_id=recording_id)
+    sink = RerunLogger(recording=recording)
+    counts = MonitorCounts()
+    inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue(maxsize=QUEUE_CAPACITY)
+
+    def enqueue(sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        try:
+            inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)))
+        except queue.Full:
+            counts.dropped += 1
+
+    def handle(item: tuple[str, bytes, str]) -> None:
+        key_expr, payload, encoding = item
+        try:
+            decoded = _message_of(prefix=prefix, key_expr=key_expr, payload=payload, encoding=encoding)
+        except DecodeError as error:
+            if key_expr not in counts.rejected:
+                logger.warning("monitor: ignoring %s: %s", key_expr, error)
+            counts.rejected[key_expr] = counts.rejected.get(key_expr, 0) + 1
+            return
+        if decoded is None:
+            return
+        topic, stage, message = decoded
+        sink.log(topic=topic, stage=stage, message=message)
+        counts.logged[key_expr] = counts.logged.get(key_expr, 0) + 1
+
+    with zenoh.open(session_config) as session:
+        subscriber = session.declare_subscriber(f"{prefix}/**", enqueue)
+        token = session.liveliness().declare_token(alive_key(prefix, MONITOR.name))
+        # A sim that started before us already put the world once: ask its queryable for it.
+        for reply in session.get(key(prefix, "world"), timeout=1.0):
+            if reply.ok is not None:
+                enqueue(reply.ok)
+        logger.info("monitor running under %s", prefix)
+        if ready_event is not None:
+            ready_event.set()
+        while not stop_event.is_set():
+            try:
+                handle(inbox.get(timeout=0.05))
+            except queue.Empty:
+                continue
+        # Drain what already arrived (the sim's last messages), until quiet or the timeout.
+        deadline = time.monotonic() + drain_timeout_s
+        while time.monotonic() < deadline:
+            try:
+                handle(inbox.get(timeout=0.2))
+            except queue.Empty:
+                break
+        token.undeclare()
+        subscriber.undeclare()
+    recording.flush(timeout_sec=10.0)
+    recording.disconnect()
+    total = sum(counts.logged.values())
+    logger.info("monitor logged %d messages (%d rejected, %d dropped)", total, sum(counts.rejected.values()),
+                counts.dropped)
+    return counts
+
+
+def monitor_targets(*, record: Path | None, viewer: bool, viewer_url: str | None) -> RerunTargets:
+    """The targets a command line asked for; with none, a recording in the working directory."""
+    targets = RerunTargets(record_path=record, spawn_viewer=viewer, viewer_url=viewer_url)
+    return targets if targets.any else RerunTargets(record_path=Path("cvxnav-monitor.rrd"))
+
+
+def monitor_arguments(*, record: Path | None, viewer: bool, viewer_url: str | None) -> Sequence[str]:
+    """The `cvxnav service monitor` options for these targets (how `cvxnav run` starts it)."""
+    args: list[str] = []
+    if record is not None:
+        args += ["--record", str(record)]
+    if viewer:
+        args += ["--viewer"]
+    if viewer_url is not None:
+        args += ["--viewer-url", viewer_url]
+    return args
