@@ -5,7 +5,7 @@ verification's reason, the stage reports it on its status key, and the previous 
 force at the sim. A `no_path` RawPath passes through as a `no_path` SmoothPath with its reason.
 
 The smoothing function is a parameter (`SmoothFn`), so an alternative smoother (e.g.
-`services.smoother.chaikin`) reuses this shell and the same verification.
+`services.smoother.coarse`) reuses this shell and the same verification.
 """
 
 from __future__ import annotations

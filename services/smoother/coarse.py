@@ -1,0 +1,57 @@
+"""An alternative smoother: the same cubic B-spline over every other optimised point, same `verify`.
+
+Halving the control points halves the spline's knots: the curve averages over twice the span, so it is
+cheaper to build and check and rounds off the optimiser's small zig-zags, at the price of cutting
+corners slightly more (which `verify` bounds against every ellipse). The first and last points (start
+and final goal) are kept; the spacing stays uniform, because the spline's knots are.
+
+Shipped to show a stage being swapped without the rest of the pipeline knowing:
+`cvxnav run --stages stages.json` with `{"stages": {"smoother": "services.smoother.coarse:factory"}}`.
+(A Chaikin corner-cutting variant was tried first: its denser polygon made the spline follow the
+planned turns more tightly and broke the curvature bound by ~1 %, so every curve was rejected.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cvxnav.geometry import Ellipse, FloatArray
+from schemas.scenario import Scenario
+from services.smoother.core import Smoothed, bspline, sample, verify
+from services.smoother.stage import SmootherConfig, SmootherStage
+
+STRIDE = 2
+
+
+def decimate(points: FloatArray, *, stride: int = STRIDE) -> FloatArray:
+    """Every `stride`-th point and the last (uniform spacing: the spline's knots are uniform)."""
+    z = np.asarray(points, dtype=float)
+    if len(z) <= 4:
+        return z
+    return np.vstack([z[:-1:stride], z[-1:]])
+
+
+def smooth_coarse(
+    control: FloatArray,
+    *,
+    ellipses: list[Ellipse],
+    max_curvature: float,
+    heading_rad: float | None,
+    goals: FloatArray,
+    goal_tolerance_m: float,
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    output_spacing_m: float = 0.05,
+) -> Smoothed:
+    """Same contract as `services.smoother.core.smooth`, over the decimated control polygon."""
+    control = np.asarray(control, dtype=float)
+    curve = bspline(decimate(control))
+    verification = verify(curve, ellipses=ellipses, max_curvature=max_curvature, start=control[0],
+                          heading_rad=heading_rad, goals=goals, goal_tolerance_m=goal_tolerance_m,
+                          bounds_min=bounds_min, bounds_max=bounds_max)
+    return Smoothed(points=sample(curve, spacing_m=output_spacing_m), verification=verification)
+
+
+def factory(scenario: Scenario) -> SmootherStage:
+    """Entry point named in a `stages` config: the smoother stage with the coarse spline."""
+    return SmootherStage(config=SmootherConfig.from_scenario(scenario), smooth_fn=smooth_coarse)
