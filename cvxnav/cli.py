@@ -127,6 +127,34 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from cvxnav.plot import PlotError, plot_result, read_result
+    from schemas.scenario import bundled_scenario
+
+    try:
+        result = read_result(args.file)
+    except PlotError as error:
+        raise CliError(str(error)) from None
+    if args.scenario is not None:
+        scenario = _load(args.scenario)
+    elif result.scenario == bundled_scenario().name:
+        scenario = bundled_scenario()
+    else:
+        raise CliError(f"{args.file}: scenario {result.scenario!r} is not the bundled one; name its file with --scenario")
+    if scenario.name != result.scenario:
+        raise CliError(f"{args.file} is for scenario {result.scenario!r}, but --scenario is {scenario.name!r}")
+    plot_result(result=result, scenario=scenario, png_path=args.png, width_px=args.width_px, height_px=args.height_px)
+    print(f"{result.scenario}: {result.status} -> {args.png} ({args.width_px}x{args.height_px})")
+    return EXIT_OK
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
 def _cmd_schemas(args: argparse.Namespace) -> int:
     from schemas.export import export_json_schemas
 
@@ -192,6 +220,15 @@ def build_parser() -> argparse.ArgumentParser:
                          help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
+
+    plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/1 file")
+    plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
+    plot.add_argument("--scenario", type=Path, default=None,
+                      help="the scenario file (default: the bundled paper scenario, when the file names it)")
+    plot.add_argument("--width-px", type=_positive_int, default=1200, help="image width in pixels")
+    plot.add_argument("--height-px", type=_positive_int, default=900, help="image height in pixels")
+    plot.set_defaults(handler=_cmd_plot)
 
     schemas = commands.add_parser("schemas", help="write every message model as JSON Schema")
     schemas.add_argument("--out", type=Path, default=Path("schemas-json"), help="directory to write")
