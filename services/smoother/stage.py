@@ -10,6 +10,7 @@ The smoothing function is a parameter (`SmoothFn`), so an alternative smoother (
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -99,6 +100,7 @@ class SmootherStage:
             status="ok",
             points=[(float(x), float(y)) for x, y in smoothed.points],
             max_curvature=verification.max_curvature,
-            min_level=verification.min_level,
+            # No ellipses: verify reports inf; the wire carries finite numbers only.
+            min_level=min(verification.min_level, sys.float_info.max),
             **common,
         ))]

@@ -63,10 +63,12 @@ def test_paper_run_is_car_like_and_clear(paper_runs):
     centre_factor = math.sqrt(1.0 + math.tan(PAPER.robot.max_steering_angle) ** 2 / 4.0)
     assert np.max(ds / dt) <= PAPER.robot.max_speed * centre_factor + 1e-9
     moving = ds > 1e-3
-    # Heading follows the motion: the chord direction is the mean heading over the step.
+    # Heading follows the motion. The footprint centre sits L/2 ahead of the rear axle, so it side-slips
+    # by β = atan(tan δ / 2) in a turn: the chord direction stays within that of the mean heading.
     chord = np.arctan2(step[moving, 1], step[moving, 0])
     mean_heading = theta[:-1][moving] + 0.5 * np.angle(np.exp(1j * (theta[1:] - theta[:-1])))[moving]
-    assert np.max(np.abs(np.angle(np.exp(1j * (chord - mean_heading))))) < 0.05
+    max_slip = math.atan(0.5 * math.tan(PAPER.robot.max_steering_angle))
+    assert np.max(np.abs(np.angle(np.exp(1j * (chord - mean_heading))))) <= max_slip + 0.01
     # Curvature of the centre's track ≤ tan(δ_max)/L (the centre turns on a larger radius than the axle).
     dtheta = np.abs(np.angle(np.exp(1j * np.diff(theta))))
     kappa = dtheta[moving] / ds[moving]
