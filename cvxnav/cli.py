@@ -148,6 +148,43 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_status(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from cvxnav.status import observe
+    from cvxnav.zenoh_config import zenoh_config_from_args
+    from schemas.wiring import default_prefix
+
+    prefix = args.prefix or default_prefix(robot_id=args.robot_id)
+    with zenoh.open(zenoh_config_from_args(args)) as session:
+        report = observe(session, prefix=prefix, window_s=args.window_s)
+    print(report.to_json() if args.json else report.table())
+    return EXIT_OK
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    import threading
+
+    from cvxnav.runtime import install_signal_handlers
+    from cvxnav.status import run_router
+    from cvxnav.zenoh_config import zenoh_config_from_args
+
+    if not args.listen and args.zenoh_config is None:
+        args.listen = ["tcp/0.0.0.0:7447"]
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    ready = threading.Event()
+    thread = threading.Thread(target=run_router, kwargs=dict(session_config=zenoh_config_from_args(args),
+                                                             stop_event=stop, ready_event=ready))
+    thread.start()
+    while thread.is_alive() and not ready.wait(0.1):
+        pass
+    if ready.is_set():
+        print(f"cvxnav router listening on {', '.join(args.listen) or 'the config file endpoints'}", flush=True)
+    thread.join()
+    return EXIT_OK if ready.is_set() else EXIT_BAD_INPUT
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -220,6 +257,18 @@ def build_parser() -> argparse.ArgumentParser:
                          help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
+
+    status = commands.add_parser("status", help="which stages are alive, their last status, message rates")
+    status.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    status.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    status.add_argument("--window-s", type=_positive_float, default=2.0, help="how long to measure rates")
+    status.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    add_zenoh_arguments(status)
+    status.set_defaults(handler=_cmd_status)
+
+    router = commands.add_parser("router", help="a Zenoh router in this process (default listen tcp/0.0.0.0:7447)")
+    add_zenoh_arguments(router)
+    router.set_defaults(handler=_cmd_router)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
     plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/1 file")

@@ -1,0 +1,87 @@
+"""Stages that meet only through `cvxnav router`, a complete run across it, and `cvxnav status` watching."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from cvxnav.run import free_ports
+from cvxnav.status import alive_stages
+from cvxnav.zenoh_config import build_zenoh_config
+from schemas.files import RunFile
+from schemas.wiring import default_prefix
+
+pytestmark = pytest.mark.slow
+PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
+
+
+def _start(args: list[str], *, log: Path) -> subprocess.Popen:
+    with open(log, "wb") as out:
+        return subprocess.Popen([sys.executable, "-m", "cvxnav", *args], stdout=out, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL)
+
+
+def _stop(processes: list[subprocess.Popen]) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+    for process in processes:
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def _open_when_up(endpoint: str, *, timeout_s: float = 30.0) -> zenoh.Session:
+    """A client session to the router, once it listens (it is a process still importing)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return zenoh.open(build_zenoh_config(connect=[endpoint], mode="client"))
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+
+
+def test_run_through_the_router_with_status(tmp_path):
+    (port,) = free_ports(1)
+    router_ep = f"tcp/127.0.0.1:{port}"
+    processes = [_start(["router", "--listen", router_ep], log=tmp_path / "router.log")]
+    try:
+        # Every stage connects to the router only: no listen endpoint, multicast scouting off.
+        processes += [_start(["service", name, "--connect", router_ep], log=tmp_path / f"{name}.log")
+                      for name in PIPELINE]
+        with _open_when_up(router_ep) as session:
+            deadline = time.monotonic() + 60.0
+            while set(PIPELINE) - alive_stages(session, prefix=default_prefix()) and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert set(PIPELINE) <= alive_stages(session, prefix=default_prefix())
+        sim = _start(["service", "sim", "--connect", router_ep, "--out", str(tmp_path / "run.json")],
+                     log=tmp_path / "sim.log")
+        processes.append(sim)
+        time.sleep(5.0)  # the sim imports, waits for the stages' tokens, then drives
+        status = subprocess.run([sys.executable, "-m", "cvxnav", "status", "--connect", router_ep, "--mode", "client",
+                                 "--window-s", "1.5", "--json"], capture_output=True, text=True, timeout=60)
+        assert status.returncode == 0, status.stderr
+        report = {stage["name"]: stage for stage in json.loads(status.stdout)["stages"]}
+        assert sim.poll() is None, "the sim finished before status looked; the run is too short to watch"
+        for name in (*PIPELINE, "sim"):
+            assert report[name]["alive"], report
+        assert report["sim"]["rates_hz"]["scan"] > 1.0
+        assert report["smoother"]["rates_hz"]["smooth_path"] > 1.0
+        assert report["planner"]["state"] == "ok"
+        assert sim.wait(timeout=120) == 0, (tmp_path / "sim.log").read_text()[-2000:]
+        run = RunFile.read(tmp_path / "run.json")
+        assert run.status == "reached" and run.goals_reached == 2
+    finally:
+        _stop(processes)
+    assert processes[0].returncode == 0  # the router stops cleanly on SIGTERM
