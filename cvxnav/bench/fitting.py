@@ -1,0 +1,150 @@
+"""Two micro-benchmarks beside the planner table: ellipse fitting, and planning time against obstacle count.
+
+Fitting: the minimum-volume (Löwner–John) ellipse of n random points by the project's two routes
+(`services.ellipsoids.mvee`, cvxpy + Clarabel; `mvee_fast`, Todd–Yildirim + Newton in numpy) and by
+Drake's `Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid`. Each gets the raw points; each is
+warmed up once (cvxpy's compile is cached per padded size) and then timed; areas are compared with
+the cvxpy route's.
+
+Scaling: cvxnav's planning time on seeded random fields of 10 … 200 obstacles in one fixed box (the
+shape of `field-60`), obstacles drawn like the public `field-*` scenarios (polygons, circles, point
+clusters). The growth exponent is the least-squares slope of log(time) on log(obstacles).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from cvxnav.bench.report import FitResult, ScalingPoint, ScalingResult
+from schemas.scenario import Scenario, parse_scenario
+
+
+def _fit_points(count: int, *, seed: int) -> np.ndarray:
+    """`count` points of a rotated anisotropic Gaussian cloud: a generic, non-degenerate fitting input."""
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((count, 2)) * np.array([2.0, 0.6])
+    c, s = np.cos(0.6), np.sin(0.6)
+    return z @ np.array([[c, s], [-s, c]]) + np.array([3.0, -1.0])
+
+
+def _median_ms(fn: Callable[[], float], *, repeats: int) -> tuple[float, float]:
+    """(median time in ms over `repeats` calls after one warm-up, the area the call returned)."""
+    area = fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(1e3 * (time.perf_counter() - t0))
+    return statistics.median(times), area
+
+
+def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, seed: int = 0) -> list[FitResult]:
+    from services.ellipsoids.mvee import mvee, mvee_fast
+
+    results: list[FitResult] = []
+    for count in counts:
+        points = _fit_points(count, seed=seed + count)
+        methods: list[tuple[str, Callable[[], float]]] = [
+            ("mvee (cvxpy + Clarabel)", lambda: mvee(points).area),
+            ("mvee_fast (numpy)", lambda: mvee_fast(points).area),
+        ]
+        if with_drake:
+            from pydrake.geometry.optimization import Hyperellipsoid
+
+            columns = np.asfortranarray(points.T)
+
+            def drake_area() -> float:
+                ellipse = Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid(columns)
+                return float(np.pi / abs(np.linalg.det(ellipse.A())))
+
+            methods.append(("Drake MinimumVolumeCircumscribedEllipsoid", drake_area))
+        reference: float | None = None
+        for method, fn in methods:
+            try:
+                median_ms, area = _median_ms(fn, repeats=repeats)
+            except Exception as error:  # a solver failure is a result, not a crash of the benchmark
+                results.append(FitResult(method=method, points=count, time_median_ms=None, area_rel_diff=None,
+                                         error=f"{type(error).__name__}: {error}"[:200]))
+                continue
+            reference = area if reference is None else reference
+            results.append(FitResult(method=method, points=count, time_median_ms=median_ms,
+                                     area_rel_diff=abs(area - reference) / reference))
+    return results
+
+
+# --------------------------------------------------------------------------- scaling
+
+
+def random_field(*, obstacles: int, seed: int, side_m: float = 24.0) -> Scenario:
+    """A `field-*`-style scenario: start (0, 0) heading 45°, goal (side, side), `obstacles` random shapes.
+
+    Centres are uniform in the box between start and goal, at least 1.5 m from both; shapes are
+    triangles to hexagons, circles and point clusters of 0.15–0.5 m radius, so the field stays passable
+    up to 200 obstacles in a 28 m box.
+    """
+    rng = np.random.default_rng(seed)
+    items: list[dict] = []
+    ends = np.array([[0.0, 0.0], [side_m, side_m]])
+    while len(items) < obstacles:
+        centre = rng.uniform(0.5, side_m - 0.5, size=2)
+        if np.min(np.linalg.norm(ends - centre, axis=1)) < 1.5:
+            continue
+        radius = rng.uniform(0.15, 0.5)
+        kind = rng.choice(["polygon", "circle", "points"])
+        if kind == "circle":
+            items.append({"type": "circle", "center": centre.round(4).tolist(), "radius": round(radius, 4)})
+            continue
+        count = int(rng.integers(3, 7)) if kind == "polygon" else int(rng.integers(5, 11))
+        angles = np.sort(rng.uniform(0.0, 2.0 * np.pi, count)) if kind == "polygon" else rng.uniform(0, 2 * np.pi, count)
+        radii = radius * (np.ones(count) if kind == "polygon" else np.sqrt(rng.uniform(0.2, 1.0, count)))
+        pts = centre + radii[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
+        key = "vertices" if kind == "polygon" else "points"
+        if kind == "polygon" and abs(np.cross(pts[1] - pts[0], pts[2] - pts[0])) < 1e-3:
+            continue
+        items.append({"type": kind, key: pts.round(4).tolist()})
+    document = {
+        "format": "cvxnav.scenario/1",
+        "name": f"random-{obstacles}",
+        "description": f"random field, seed {seed}, {obstacles} obstacles (generated by cvxnav bench)",
+        "bounds": {"min": [-4.0, -4.0], "max": [side_m + 4.0, side_m + 4.0]},
+        "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.5, "max_speed": 1.0,
+                  "max_steering_angle": 0.6, "max_steering_rate": 0.5},
+        "sensor": {"fov_deg": 180.0, "range": 5.0, "rays": 181, "rate_hz": 10.0},
+        "start": {"x": 0.0, "y": 0.0, "theta": float(np.pi / 4)},
+        "goals": [[side_m, side_m]],
+        "goal_tolerance": 0.3,
+        "obstacles": items,
+        "expect": "reach",
+    }
+    import json
+
+    return parse_scenario(json.dumps(document), source=document["name"])
+
+
+def scaling_benchmark(*, counts: tuple[int, ...], repeats: int, seed: int = 7,
+                      on_step: Callable[[], None] | None = None) -> ScalingResult:
+    """cvxnav's planning time (optimise + smooth, as in the main table) against obstacle count."""
+    from cvxnav.bench.planners import plan_cvxnav
+    from cvxnav.bench.problem import BenchProblem
+
+    points: list[ScalingPoint] = []
+    for count in counts:
+        problem = BenchProblem.of(random_field(obstacles=count, seed=seed + count))
+        plan_cvxnav(problem)  # warm: the table compares warm times
+        attempts = [plan_cvxnav(problem) for _ in range(repeats)]
+        ok = all(a.path is not None for a in attempts)
+        points.append(ScalingPoint(obstacles=count, grown_ellipses=len(problem.grown),
+                                   time_median_ms=1e3 * statistics.median(a.time_s for a in attempts), success=ok))
+        if on_step is not None:
+            on_step()
+    usable = [(p.obstacles, p.time_median_ms) for p in points if p.success and p.time_median_ms]
+    exponent = None
+    if len(usable) >= 2:
+        x, y = np.log([u[0] for u in usable]), np.log([u[1] for u in usable])
+        exponent = float(np.polyfit(x, y, 1)[0])
+    return ScalingResult(points=points, growth_exponent=exponent,
+                         time_meaning="cvxnav warm optimise + smooth, median; exponent over successful points")

@@ -1,0 +1,107 @@
+"""The benchmark's output, defined once as frozen pydantic models and exported as JSON Schema.
+
+`BenchReport` is what `cvxnav bench --json` writes; `BenchReport.model_json_schema()` is its contract
+for anyone reading it without this package. Floats are finite; a quantity that does not exist (the
+length of a failed plan, BIT*'s time to 1 % when it never got there) is null, never NaN.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+FORMAT = "cvxnav.bench/1"
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class PlannerResult(_Frozen):
+    """One planner on one scenario, summarised over its repeats."""
+
+    planner: str
+    success: bool  # produced a path on every repeat and none of them collides with the true geometry
+    collision: bool  # some returned path comes closer than width/2 + safety − tolerance to a true obstacle
+    reason: str = ""  # why it failed, or what its numbers mean
+    repeats: int = Field(ge=0)
+    length_m: float | None = None  # median length of the returned paths
+    length_ratio: float | None = None  # length_m ÷ the grown-ellipse optimum
+    min_clearance_m: float | None = None  # worst true-geometry clearance over the returned paths
+    time_median_ms: float | None = None  # the planner's planning time (what it means: `time_meaning`)
+    time_p90_ms: float | None = None
+    time_meaning: str = ""
+    cold_ms: float | None = None  # cvxnav only: the first call on the scenario in this process
+    first_solution_ms: float | None = None  # sampling planners: median time to the first solution
+    target_reached: int | None = None  # sampling planners: repeats that reached 1.01 × optimum in budget
+    peak_memory_kib: float | None = None  # tracemalloc peak of one extra, untimed call
+
+
+class ScenarioResult(_Frozen):
+    name: str
+    obstacles: int = Field(ge=0)
+    grown_ellipses: int = Field(ge=0)
+    optimum_m: float | None  # shortest path outside the grown ellipses (tangent graph, see `optimum_note`)
+    optimum_note: str
+    reference_m: float | None  # REFERENCE.json: the shortest path among the true obstacles grown
+    planners: list[PlannerResult]
+
+
+class FitResult(_Frozen):
+    """Minimum-volume ellipse of `points` random points: one fitting route."""
+
+    method: str
+    points: int = Field(gt=0)
+    time_median_ms: float | None
+    area_rel_diff: float | None  # |area − reference area| / reference area (reference: mvee, cvxpy)
+    error: str = ""
+
+
+class ScalingPoint(_Frozen):
+    obstacles: int = Field(gt=0)
+    grown_ellipses: int = Field(ge=0)
+    time_median_ms: float | None
+    success: bool
+
+
+class ScalingResult(_Frozen):
+    """cvxnav planning time against obstacle count on seeded random fields; exponent from log-log fit."""
+
+    points: list[ScalingPoint]
+    growth_exponent: float | None  # slope of log(time) against log(obstacles), least squares
+    time_meaning: str
+
+
+class TargetRatios(_Frozen):
+    """The issue's targets, each a measured ratio (≤ 1 meets the time targets; ≤ 1.01 the length one)."""
+
+    length_ratio_worst: float | None  # max over scenarios of cvxnav length ÷ grown-ellipse optimum
+    time_ratio_vs_bitstar: dict[str, float | None]  # per scenario: cvxnav warm median ÷ BIT* median to 1 %
+    time_ratio_vs_bitstar_is_lower_bound: dict[str, bool]  # BIT* missed 1 % in budget: ratio uses the budget
+    fit_ratio_vs_drake: dict[str, float | None]  # per point count: mvee_fast ÷ Drake time
+    growth_exponent: float | None
+
+
+class Machine(_Frozen):
+    platform: str
+    processor: str
+    cpus: int
+    python: str
+    packages: dict[str, str]
+
+
+class BenchReport(_Frozen):
+    format: Literal["cvxnav.bench/1"] = FORMAT
+    command: str
+    machine: Machine
+    quick: bool
+    repeats: int = Field(ge=1)
+    sampling_budget_s: float = Field(gt=0)
+    collision_tolerance_m: float = Field(ge=0)
+    notes: list[str]
+    scenarios: list[ScenarioResult]
+    fit: list[FitResult]
+    scaling: ScalingResult | None
+    targets: TargetRatios
+    wall_s: float = Field(ge=0)

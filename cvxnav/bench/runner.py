@@ -1,0 +1,383 @@
+"""`cvxnav bench`: every planner on the same scenarios and the same grown ellipses, in one process.
+
+For each scenario: the grown-ellipse model (`BenchProblem`), its optimum (a fine tangent graph), then
+each planner `repeats` times (cvxnav once more first, cold), each answer judged on the true geometry;
+peak memory from one extra untimed call under tracemalloc (Python allocations, numpy's included;
+C++ allocations inside OMPL, Drake and Clarabel are not seen). Then the fitting micro-benchmark and
+the scaling run. Progress goes to a rich bar; the result is a `BenchReport`, printed as a rich table
+and written as JSON and Markdown.
+"""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import sys
+import time
+import tracemalloc
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from cvxnav.bench import planners
+from cvxnav.bench.planners import Attempt
+from cvxnav.bench.problem import COLLISION_TOLERANCE_M, BenchProblem, check_path, reference_lengths
+from cvxnav.bench.report import (
+    BenchReport,
+    FitResult,
+    Machine,
+    PlannerResult,
+    ScalingResult,
+    ScenarioResult,
+    TargetRatios,
+)
+from schemas.scenario import Scenario
+
+CVXNAV = "cvxnav"
+BITSTAR = "BIT* (OMPL)"
+INFORMED = "Informed RRT* (OMPL)"
+DRAKE = "IRIS + GCS (Drake)"
+PAPER = "paper, as written"
+OPTIMUM = "optimum (tangent graph)"
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    quick: bool = False
+    repeats: int = 5
+    sampling_budget_s: float = 5.0  # per leg, for BIT* and Informed RRT*
+    optimum_sides: int = 256
+    drake_regions: int = 16
+    drake_repeats: int = 2  # IRIS + GCS is slow and deterministic given its seed
+    fit_counts: tuple[int, ...] = (20, 100, 1000)
+    fit_repeats: int = 20
+    scaling_counts: tuple[int, ...] = (10, 25, 50, 100, 200)
+    scaling_repeats: int = 2
+    seed: int = 0
+
+    @classmethod
+    def quick_defaults(cls, *, repeats: int | None = None) -> BenchOptions:
+        """Under two minutes on two cores: one repeat fewer everywhere, short budgets, a small scaling run."""
+        return cls(quick=True, repeats=repeats or 2, sampling_budget_s=1.0, optimum_sides=64, drake_regions=8,
+                   drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, scaling_counts=(10, 25), scaling_repeats=1)
+
+
+@dataclass(frozen=True)
+class PlannerSpec:
+    name: str
+    call: Callable[[BenchProblem, int], Attempt]
+    repeats: int
+    time_meaning: str
+    cold: bool = False
+
+
+def default_scenario_dir() -> Path:
+    """The public scenarios: `shared/scenarios` beside the checkout (as the test suite finds them)."""
+    return Path(__file__).resolve().parents[3] / "shared" / "scenarios"
+
+
+def _machine() -> Machine:
+    import os
+
+    packages = {}
+    for name in ("cvxnav", "cvxpy", "clarabel", "numpy", "ompl", "drake"):
+        try:
+            packages[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            packages[name] = "not installed"
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return Machine(platform=platform.platform(), processor=cpu or "unknown", cpus=os.cpu_count() or 1,
+                   python=platform.python_version(), packages=packages)
+
+
+def _peak_kib(call: Callable[[], object]) -> float:
+    tracemalloc.start()
+    try:
+        call()
+        return tracemalloc.get_traced_memory()[1] / 1024.0
+    finally:
+        tracemalloc.stop()
+
+
+def summarise(spec: PlannerSpec, problem: BenchProblem, attempts: list[Attempt], *, optimum_m: float | None,
+               cold_s: float | None, peak_kib: float | None) -> PlannerResult:
+    """Success only if every repeat returned a path that reaches the goals and never collides."""
+    checks = [check_path(problem, a.path) if a.path is not None else None for a in attempts]
+    failed = [a.reason or "no path" for a, c in zip(attempts, checks) if c is None]
+    collides = any(c is not None and c.collides for c in checks)
+    misses = any(c is not None and not c.reaches_goals for c in checks)
+    lengths = [c.length_m for c in checks if c is not None]
+    times = [1e3 * a.time_s for a in attempts]
+    reasons = []
+    if failed:
+        reasons.append(f"{len(failed)}/{len(attempts)} failed: {failed[0]}")
+    if collides:
+        worst = min(c.min_clearance_m for c in checks if c is not None)
+        reasons.append(f"collides: true clearance {worst:.3f} m < {problem.scenario.inflation_m - COLLISION_TOLERANCE_M:.3f} m")
+    if misses:
+        reasons.append("misses a goal")
+    other = sorted({a.reason for a in attempts if a.path is not None and a.reason})
+    reasons += other
+    length = statistics.median(lengths) if lengths else None
+    firsts = [1e3 * a.first_solution_s for a in attempts if a.first_solution_s is not None]
+    is_sampling = spec.name in (BITSTAR, INFORMED)
+    return PlannerResult(
+        planner=spec.name,
+        success=not failed and not collides and not misses,
+        collision=collides,
+        reason="; ".join(reasons),
+        repeats=len(attempts),
+        length_m=length,
+        length_ratio=length / optimum_m if length is not None and optimum_m else None,
+        min_clearance_m=min((c.min_clearance_m for c in checks if c is not None), default=None),
+        time_median_ms=statistics.median(times) if times else None,
+        time_p90_ms=float(np.percentile(times, 90)) if times else None,
+        time_meaning=spec.time_meaning,
+        cold_ms=1e3 * cold_s if cold_s is not None else None,
+        first_solution_ms=statistics.median(firsts) if firsts else None,
+        target_reached=sum(a.target_s is not None for a in attempts) if is_sampling else None,
+        peak_memory_kib=peak_kib,
+    )
+
+
+def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]) -> list[PlannerSpec]:
+    specs = [
+        PlannerSpec(CVXNAV, lambda p, s: planners.plan_cvxnav(p), options.repeats,
+              "warm optimise + smooth on the grown ellipses (fit excluded, as for every planner); heading + curvature honoured",
+              cold=True),
+        PlannerSpec(PAPER, lambda p, s: planners.plan_paper(p), options.repeats, "straight line, detours, Bézier; nothing verified"),
+    ]
+    if not peers["ompl"]:
+        budget = options.sampling_budget_s
+        for name, algorithm in ((BITSTAR, "BITstar"), (INFORMED, "InformedRRTstar")):
+            specs.append(PlannerSpec(
+                name,
+                lambda p, s, algorithm=algorithm: planners.plan_ompl(p, planner=algorithm, budget_s=budget, leg_optima_m=leg_optima),
+                options.repeats,
+                f"time to within 1 % of the optimum (stops there), else the {budget:g} s budget per leg; point robot",
+            ))
+    if not peers["drake"]:
+        specs.append(PlannerSpec(
+            DRAKE,
+            lambda p, s: planners.plan_drake_gcs(p, max_regions=options.drake_regions, seed=options.seed + s),
+            options.drake_repeats,
+            f"IRIS (≤ {options.drake_regions} regions) + GCS per leg; point robot",
+        ))
+    return specs
+
+
+def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: str,
+              console: Console | None = None, show_progress: bool = True) -> BenchReport:
+    console = console or Console(stderr=True)
+    started = time.perf_counter()
+    peers = planners.peer_status()
+    if not peers["ompl"]:
+        from ompl import util as ou
+
+        ou.RNG.setSeed(options.seed + 1)  # OMPL's global seed: set once, before any planner samples
+    notes = [f"skipped {name}: {why}" for name, why in peers.items() if why]
+    notes += [
+        "All planners get the same grown ellipses (cvxnav's known-map fit grown by width/2 + safety); "
+        "only cvxnav honours the start heading and the curvature bound, the peers plan for a point robot.",
+        f"Collision = true-geometry clearance (Scenario.clearance, path resampled at 0.02 m) below "
+        f"width/2 + safety − {COLLISION_TOLERANCE_M} m; a colliding planner counts as failed.",
+        f"Optimum = tangent graph over {options.optimum_sides}-gons circumscribing each grown ellipse at level 1 + 1e-6: "
+        f"feasible, above the model's exact optimum by at most {1 / np.cos(np.pi / options.optimum_sides) - 1:.1e} relative.",
+        "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack-style segment test) in a "
+        "Python MotionValidator, so OMPL's times include Python callback overhead.",
+        "Peak memory: tracemalloc over one extra untimed call (Python and numpy allocations; not C++ inside OMPL/Drake/Clarabel).",
+    ]
+    references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
+    n_steps = len(scenarios) * (2 + (0 if peers["ompl"] else 2) + (0 if peers["drake"] else 1)) + 2
+    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=console, disable=not show_progress, transient=False)
+    results: list[ScenarioResult] = []
+    with progress:
+        task = progress.add_task("bench", total=n_steps)
+        for scenario in scenarios:
+            progress.update(task, description=f"{scenario.name}: fitting the model")
+            problem = BenchProblem.of(scenario)
+            progress.update(task, description=f"{scenario.name}: optimum")
+            optimum = planners.plan_optimum(problem, sides=options.optimum_sides)
+            optimum_m = check_path(problem, optimum.path).length_m if optimum.path is not None else None
+            leg_optima = [v for k, v in optimum.extra.items() if k.startswith("leg")]
+            rows: list[PlannerResult] = []
+            for spec in _specs(options, peers, leg_optima):
+                progress.update(task, description=f"{scenario.name}: {spec.name}")
+                if optimum_m is None and spec.name in (BITSTAR, INFORMED):
+                    rows.append(PlannerResult(planner=spec.name, success=False, collision=False, repeats=0,
+                                              reason="no optimum to aim at: the model has no route"))
+                    progress.advance(task)
+                    continue
+                cold_s = spec.call(problem, 0).time_s if spec.cold else None
+                attempts = [spec.call(problem, k) for k in range(spec.repeats)]
+                peak = _peak_kib(lambda: spec.call(problem, spec.repeats))
+                rows.append(summarise(spec, problem, attempts, optimum_m=optimum_m, cold_s=cold_s, peak_kib=peak))
+                progress.advance(task)
+            rows.append(PlannerResult(
+                planner=OPTIMUM, success=optimum.path is not None, collision=False, repeats=1,
+                reason=optimum.reason, length_m=optimum_m, length_ratio=1.0 if optimum_m else None,
+                min_clearance_m=check_path(problem, optimum.path).min_clearance_m if optimum.path is not None else None,
+                time_median_ms=1e3 * optimum.time_s, time_p90_ms=1e3 * optimum.time_s,
+                time_meaning=f"one tangent-graph search, {options.optimum_sides} sides",
+            ))
+            results.append(ScenarioResult(
+                name=scenario.name, obstacles=len(scenario.obstacles), grown_ellipses=len(problem.grown),
+                optimum_m=optimum_m, optimum_note=f"tangent graph, {options.optimum_sides}-gons, level 1 + 1e-6",
+                reference_m=references.get(scenario.name), planners=rows,
+            ))
+        progress.update(task, description="fitting micro-benchmark")
+        from cvxnav.bench.fitting import fit_benchmark, scaling_benchmark
+
+        fit = fit_benchmark(counts=options.fit_counts, repeats=options.fit_repeats, with_drake=not peers["drake"])
+        progress.advance(task)
+        progress.update(task, description="scaling: random fields")
+        scaling = (
+            scaling_benchmark(counts=options.scaling_counts, repeats=options.scaling_repeats)
+            if options.scaling_counts
+            else None
+        )
+        progress.advance(task)
+        progress.update(task, description="done")
+    return BenchReport(
+        command=command, machine=_machine(), quick=options.quick, repeats=options.repeats,
+        sampling_budget_s=options.sampling_budget_s, collision_tolerance_m=COLLISION_TOLERANCE_M, notes=notes,
+        scenarios=results, fit=fit, scaling=scaling, targets=_targets(results, fit, scaling),
+        wall_s=time.perf_counter() - started,
+    )
+
+
+def _targets(results: list[ScenarioResult], fit: list[FitResult], scaling: ScalingResult | None) -> TargetRatios:
+    """The issue's three targets as ratios measured in this run."""
+    ratios, time_ratios, lower = [], {}, {}
+    for scenario in results:
+        by_name = {p.planner: p for p in scenario.planners}
+        ours, bit = by_name.get(CVXNAV), by_name.get(BITSTAR)
+        if ours is not None and ours.success and ours.length_ratio is not None:
+            ratios.append(ours.length_ratio)
+        if ours is not None and bit is not None and ours.time_median_ms and bit.time_median_ms and ours.success:
+            time_ratios[scenario.name] = ours.time_median_ms / bit.time_median_ms
+            lower[scenario.name] = bit.target_reached != bit.repeats
+    fit_ratio: dict[str, float | None] = {}
+    for count in sorted({f.points for f in fit}):
+        fast = next((f for f in fit if f.points == count and f.method.startswith("mvee_fast")), None)
+        drake = next((f for f in fit if f.points == count and f.method.startswith("Drake")), None)
+        if fast and drake and fast.time_median_ms and drake.time_median_ms:
+            fit_ratio[str(count)] = fast.time_median_ms / drake.time_median_ms
+    return TargetRatios(length_ratio_worst=max(ratios) if ratios else None, time_ratio_vs_bitstar=time_ratios,
+                        time_ratio_vs_bitstar_is_lower_bound=lower, fit_ratio_vs_drake=fit_ratio,
+                        growth_exponent=scaling.growth_exponent if scaling else None)
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def _num(value: float | None, fmt: str) -> str:
+    return "—" if value is None else format(value, fmt)
+
+
+_HEADER = ("scenario", "planner", "ok", "length m", "÷ optimum", "median ms", "p90 ms", "cold ms",
+           "1st sol ms", "to 1 %", "peak KiB", "note")
+
+
+def _rows(report: BenchReport) -> list[tuple[str, ...]]:
+    rows = []
+    for scenario in report.scenarios:
+        ref = f" (ref {scenario.reference_m:.3f})" if scenario.reference_m else ""
+        for k, p in enumerate(scenario.planners):
+            rows.append((
+                f"{scenario.name}{ref}" if k == 0 else "",
+                p.planner,
+                "yes" if p.success else ("COLLIDES" if p.collision else "no"),
+                _num(p.length_m, ".3f"),
+                _num(p.length_ratio, ".4f"),
+                _num(p.time_median_ms, ".1f"),
+                _num(p.time_p90_ms, ".1f"),
+                _num(p.cold_ms, ".0f"),
+                _num(p.first_solution_ms, ".1f"),
+                "—" if p.target_reached is None else f"{p.target_reached}/{p.repeats}",
+                _num(p.peak_memory_kib, ".0f"),
+                p.reason[:160],
+            ))
+    return rows
+
+
+def _target_lines(report: BenchReport) -> list[str]:
+    t = report.targets
+    lines = [f"length ÷ grown-ellipse optimum, worst over scenarios (target ≤ 1.01): {_num(t.length_ratio_worst, '.4f')}"]
+    for name, ratio in t.time_ratio_vs_bitstar.items():
+        bound = " (BIT* missed 1 % in budget: ratio vs budget)" if t.time_ratio_vs_bitstar_is_lower_bound.get(name) else ""
+        lines.append(f"time ÷ BIT* time to 1 %, {name} (target ≤ 1): {_num(ratio, '.2f')}{bound}")
+    for count, ratio in t.fit_ratio_vs_drake.items():
+        lines.append(f"fit time mvee_fast ÷ Drake, {count} points (target ≤ 1): {_num(ratio, '.2f')}")
+    lines.append(f"planning-time growth exponent in obstacles (target ≤ 1): {_num(t.growth_exponent, '.2f')}")
+    return lines
+
+
+def print_report(report: BenchReport, *, console: Console) -> None:
+    table = Table(title=f"cvxnav bench ({'quick' if report.quick else 'full'}, {report.repeats} repeats)")
+    for column in _HEADER[:-1]:
+        table.add_column(column, no_wrap=True)
+    notes = []
+    for row in _rows(report):
+        # Notes are long: numbered under the table so the numbers stay readable in 120 columns.
+        if row[-1]:
+            notes.append(row[-1])
+        table.add_row(*row[:-2], row[-2] + (f" [{len(notes)}]" if row[-1] else ""))
+    console.print(table)
+    for k, note in enumerate(notes, start=1):
+        console.print(f"[{k}] {note}", markup=False, highlight=False)
+    fit = Table(title="minimum-volume ellipse fit")
+    for column in ("points", "method", "median ms", "area rel. diff", "error"):
+        fit.add_column(column)
+    for f in report.fit:
+        fit.add_row(str(f.points), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"), f.error)
+    console.print(fit)
+    if report.scaling:
+        scale = Table(title=f"scaling (growth exponent {_num(report.scaling.growth_exponent, '.2f')})")
+        for column in ("obstacles", "grown ellipses", "median ms", "ok"):
+            scale.add_column(column)
+        for s in report.scaling.points:
+            scale.add_row(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"), "yes" if s.success else "no")
+        console.print(scale)
+    for line in _target_lines(report) + report.notes:
+        console.print(f"• {line}")
+
+
+def to_markdown(report: BenchReport) -> str:
+    """The same tables as GitHub Markdown."""
+    def table(header: Sequence[str], rows: list[Sequence[str]]) -> list[str]:
+        clean = [[str(c).replace("|", "\\|") for c in row] for row in rows]
+        return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in clean]
+
+    m = report.machine
+    out = [f"Machine: {m.processor}, {m.cpus} CPUs, {m.platform}, Python {m.python}; "
+           + ", ".join(f"{k} {v}" for k, v in m.packages.items()) + ".",
+           f"Command: `{report.command}` ({report.wall_s:.0f} s wall).", ""]
+    out += table(_HEADER, _rows(report)) + [""]
+    out += table(("points", "method", "median ms", "area rel. diff", "error"),
+                 [(str(f.points), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"), f.error)
+                  for f in report.fit]) + [""]
+    if report.scaling:
+        out += table(("obstacles", "grown ellipses", "cvxnav median ms", "ok"),
+                     [(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"), "yes" if s.success else "no")
+                      for s in report.scaling.points]) + [""]
+    out += [f"- {line}" for line in _target_lines(report) + report.notes]
+    return "\n".join(out) + "\n"
+
+
+def command_line(argv: Sequence[str] | None = None) -> str:
+    return "cvxnav " + " ".join(sys.argv[1:] if argv is None else argv)
