@@ -282,6 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
     schemas = commands.add_parser("schemas", help="write every message model as JSON Schema")
     schemas.add_argument("--out", type=Path, default=Path("schemas-json"), help="directory to write")
     schemas.set_defaults(handler=_cmd_schemas)
+
+    from cvxnav.bench.command import add_bench_parser  # light: the benchmark's imports are inside its handler
+
+    add_bench_parser(commands)
     return parser
 
 
