@@ -1,0 +1,48 @@
+"""`cvxnav bench --quick` as CI runs it: a real process, its JSON valid against the schema it writes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cvxnav.bench.report import BenchReport
+
+
+@pytest.mark.slow
+def test_quick_bench_writes_json_that_validates_against_its_schema(tmp_path: Path, scenarios_dir: Path):
+    out, schema, markdown = tmp_path / "out.json", tmp_path / "schema.json", tmp_path / "out.md"
+    done = subprocess.run(
+        [sys.executable, "-m", "cvxnav", "bench", "--quick", "--quiet", "--repeats", "1",
+         str(scenarios_dir / "field-8.json"),
+         "--json", str(out), "--schema", str(schema), "--markdown", str(markdown)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    document = json.loads(out.read_text())
+    jsonschema = pytest.importorskip("jsonschema")
+    jsonschema.validate(document, json.loads(schema.read_text()))
+    report = BenchReport.model_validate(document)
+
+    (scenario,) = report.scenarios
+    rows = {p.planner: p for p in scenario.planners}
+    assert rows["cvxnav"].success and rows["cvxnav"].length_ratio is not None
+    assert rows["optimum (tangent graph)"].length_ratio == 1.0
+    peers = {"BIT* (OMPL)", "Informed RRT* (OMPL)", "IRIS + GCS (Drake)"}
+    for name in peers:
+        # Either measured, or skipped with a note that says how to get it.
+        assert name in rows or any("pip install" in note for note in report.notes)
+    assert "cvxnav" in done.stdout and "length ÷ grown-ellipse optimum" in done.stdout
+    assert "| scenario | planner |" in markdown.read_text()
+
+
+def test_a_bad_scenario_is_one_line_and_exit_2(tmp_path: Path):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "cvxnav.scenario/1"}')
+    done = subprocess.run([sys.executable, "-m", "cvxnav", "bench", "--quick", str(bad)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and "bad.json" in done.stderr
