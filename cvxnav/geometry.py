@@ -9,10 +9,12 @@ same question about the unit circle.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import brentq
+from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 
@@ -122,7 +124,13 @@ class Ellipse:
 
 @dataclass(frozen=True, eq=False)
 class EllipseStack:
-    """Many ellipses stacked for vectorised tests: A is (m, 2, 2), b is (m, 2)."""
+    """Many ellipses stacked for vectorised tests: A is (m, 2, 2), b is (m, 2).
+
+    The `min_*` queries answer "how deep into the nearest ellipse" for many points or segments at once,
+    with a broad phase: an ellipse lies within its largest semi-axis (its reach) of its centre, so a
+    KD-tree over the centres finds the few ellipses a point or segment can touch, and only those pairs
+    get the exact test. Where no ellipse is near, the answer is +inf.
+    """
 
     A: FloatArray
     b: FloatArray
@@ -135,6 +143,24 @@ class EllipseStack:
 
     def __len__(self) -> int:
         return self.A.shape[0]
+
+    @cached_property
+    def centers(self) -> FloatArray:
+        return -np.linalg.solve(self.A, self.b[:, :, None])[:, :, 0] if len(self) else np.zeros((0, 2))
+
+    @cached_property
+    def reach(self) -> FloatArray:
+        """Largest semi-axis of each ellipse: 1 / smallest eigenvalue of A."""
+        return 1.0 / np.linalg.eigvalsh(self.A)[:, 0] if len(self) else np.zeros(0)
+
+    @cached_property
+    def stretch(self) -> FloatArray:
+        """‖Aⱼ‖₂: how much a displacement grows in each ellipse's unit-disc frame."""
+        return np.linalg.eigvalsh(self.A)[:, 1] if len(self) else np.zeros(0)
+
+    @cached_property
+    def _tree(self) -> cKDTree:
+        return cKDTree(self.centers)
 
     def levels(self, points: ArrayLike) -> FloatArray:
         """‖Aⱼ zᵢ + bⱼ‖ as an (n_points, m) array."""
@@ -152,12 +178,60 @@ class EllipseStack:
         """
         p = np.atleast_2d(np.asarray(starts, dtype=float))
         q = np.atleast_2d(np.asarray(ends, dtype=float))
-        u0 = np.einsum("mij,nj->nmi", self.A, p) + self.b[None, :, :]
-        v = np.einsum("mij,nj->nmi", self.A, q - p)
-        vv = np.einsum("nmi,nmi->nm", v, v)
-        t = np.clip(-np.einsum("nmi,nmi->nm", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
-        closest = u0 + t[:, :, None] * v
-        return np.linalg.norm(closest, axis=2)
+        rows, cols = np.meshgrid(np.arange(len(p)), np.arange(len(self)), indexing="ij")
+        return self._pair_segment_levels(p, q, rows.ravel(), cols.ravel()).reshape(len(p), len(self))
+
+    def _pair_segment_levels(self, p: FloatArray, q: FloatArray, rows: FloatArray, cols: FloatArray) -> FloatArray:
+        A = self.A[cols]
+        u0 = np.einsum("kij,kj->ki", A, p[rows]) + self.b[cols]
+        v = np.einsum("kij,kj->ki", A, q[rows] - p[rows])
+        vv = np.einsum("ki,ki->k", v, v)
+        t = np.clip(-np.einsum("ki,ki->k", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
+        return np.linalg.norm(u0 + t[:, None] * v, axis=1)
+
+    def near_pairs(self, centers: FloatArray, radii: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Pairs (i, j) where the disc (centers[i], radii[i]) meets ellipse j's bounding disc."""
+        if len(self) == 0 or len(centers) == 0:
+            return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+        lists = self._tree.query_ball_point(centers, r=radii + self.reach.max())
+        counts = np.fromiter((len(x) for x in lists), dtype=int, count=len(lists))
+        rows = np.repeat(np.arange(len(centers)), counts)
+        cols = np.concatenate([np.asarray(x, dtype=int) for x in lists]) if counts.sum() else np.zeros(0, dtype=int)
+        close = np.linalg.norm(centers[rows] - self.centers[cols], axis=1) <= radii[rows] + self.reach[cols]
+        return rows[close], cols[close]
+
+    def min_levels(self, points: ArrayLike) -> FloatArray:
+        """min over ellipses of ‖Aⱼ z + bⱼ‖ for each point (+inf where no ellipse is near)."""
+        z = np.atleast_2d(np.asarray(points, dtype=float))
+        rows, cols = self.near_pairs(z, np.zeros(len(z)))
+        out = np.full(len(z), np.inf)
+        u = np.einsum("kij,kj->ki", self.A[cols], z[rows]) + self.b[cols]
+        np.minimum.at(out, rows, np.linalg.norm(u, axis=1))
+        return out
+
+    def min_segment_levels(self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None) -> FloatArray:
+        """min over ellipses of the eq. (2) segment level for each segment (+inf where none is near).
+
+        `sag_m` optionally bounds how far the real curve strays from each chord: it is widened into the
+        broad phase and subtracted in each ellipse's frame (‖Aⱼ‖₂ · sag), giving a lower bound for the curve.
+        """
+        p = np.atleast_2d(np.asarray(starts, dtype=float))
+        q = np.atleast_2d(np.asarray(ends, dtype=float))
+        sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
+        rows, cols, levels = self.segment_pairs(p, q, sag_m=sag)
+        out = np.full(len(p), np.inf)
+        np.minimum.at(out, rows, levels)
+        return out
+
+    def segment_pairs(
+        self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(segment, ellipse, level) for every pair the broad phase keeps; see `min_segment_levels`."""
+        p = np.atleast_2d(np.asarray(starts, dtype=float))
+        q = np.atleast_2d(np.asarray(ends, dtype=float))
+        sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
+        rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag)
+        return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
 
 
 def polyline_length(points: ArrayLike) -> float:

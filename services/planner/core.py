@@ -26,8 +26,8 @@ def intersected(points: FloatArray, ellipses: list[Ellipse], *, level: float = 1
     """Indices of the ellipses a polyline enters: the paper's eq. (2), exact on every segment."""
     if not ellipses or len(points) < 2:
         return np.zeros(0, dtype=int)
-    levels = EllipseStack.of(ellipses).segment_levels(points[:-1], points[1:])
-    return np.flatnonzero(np.min(levels, axis=0) < level)
+    _, cols, levels = EllipseStack.of(ellipses).segment_pairs(points[:-1], points[1:])
+    return np.unique(cols[levels < level])
 
 
 def _route(

@@ -18,6 +18,7 @@ from scipy.sparse.csgraph import dijkstra
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
 
 _CHUNK = 400_000  # node pairs tested at once: bounds the memory of the vectorised tangency test
+_EDGE_CHUNK = 5_000  # candidate edges tested at once against the ellipses near them
 
 
 def _polygon_vertices(stack: EllipseStack, *, sides: int, level: float) -> FloatArray:
@@ -93,7 +94,7 @@ def tangent_route(
         owner = np.repeat(np.arange(m), sides)
         index_in_polygon = np.tile(k, m)
         keep = np.all((flat >= bounds_min) & (flat <= bounds_max), axis=1)
-        keep &= np.all(stack.levels(flat) >= 1.0, axis=1)
+        keep &= stack.min_levels(flat) >= 1.0
         flat, prev, nxt, owner, index_in_polygon = (
             a[keep] for a in (flat, prev, nxt, owner, index_in_polygon)
         )
@@ -126,9 +127,9 @@ def tangent_route(
 
     if m and len(i):
         clear = np.ones(len(i), dtype=bool)
-        for lo in range(0, len(i), _CHUNK // max(m, 1) + 1):
-            sl = slice(lo, lo + _CHUNK // max(m, 1) + 1)
-            clear[sl] = np.all(stack.segment_levels(points[i[sl]], points[j[sl]]) >= 1.0, axis=1)
+        for lo in range(0, len(i), _EDGE_CHUNK):
+            sl = slice(lo, lo + _EDGE_CHUNK)
+            clear[sl] = stack.min_segment_levels(points[i[sl]], points[j[sl]]) >= 1.0
         i, j = i[clear], j[clear]
 
     lengths = np.linalg.norm(points[i] - points[j], axis=1)

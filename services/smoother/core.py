@@ -88,15 +88,12 @@ def verify(
 
     min_level = np.inf
     if ellipses:
-        stack = EllipseStack.of(ellipses)
         du = np.diff(u)
         acc = np.linalg.norm(d2, axis=1)
         # B″ is linear on each knot span and the samples include the knots, so the larger end value
         # bounds ‖B″‖ on every sample interval.
         deviation = np.maximum(acc[:-1], acc[1:]) * du**2 / 8.0
-        chord = stack.segment_levels(z[:-1], z[1:])  # (segments, ellipses)
-        stretch = np.linalg.norm(stack.A, ord=2, axis=(1, 2))  # ‖Aⱼ‖₂
-        min_level = float(np.min(chord - deviation[:, None] * stretch[None, :]))
+        min_level = float(np.min(EllipseStack.of(ellipses).min_segment_levels(z[:-1], z[1:], sag_m=deviation)))
 
     def fail(reason: str) -> Verification:
         return Verification(False, min_level, max_kappa, reason)
