@@ -274,7 +274,15 @@ def plan_ompl(
 # --------------------------------------------------------------------------- Drake
 
 
-def plan_drake_gcs(problem: BenchProblem, *, max_regions: int, seed: int, max_misses: int = 200) -> Attempt:
+def plan_drake_gcs(
+    problem: BenchProblem,
+    *,
+    max_regions: int,
+    seed: int,
+    obstacle_shape: Literal["ellipses", "polygons"] = "ellipses",
+    polygon_sides: int = 32,
+    max_misses: int = 200,
+) -> Attempt:
     """Drake: IRIS regions of the free space round the grown ellipses, then a GCS shortest path.
 
     Regions (Deits & Tedrake 2014, `pydrake.geometry.optimization.Iris`) are seeded at the start, each
@@ -282,6 +290,12 @@ def plan_drake_gcs(problem: BenchProblem, *, max_regions: int, seed: int, max_mi
     samples in a row fall in covered space. Regions that intersect are joined; `GcsTrajectoryOptimization`
     (Marcucci et al. 2023) with first-order (straight) pieces and a path-length cost solves each leg by
     its convex relaxation and rounding. Time = IRIS + GCS; a leg that GCS does not solve is a failure.
+
+    `obstacle_shape="ellipses"` hands IRIS the grown ellipses themselves (`Hyperellipsoid`); with the
+    open solvers Drake has here (Clarabel; MOSEK is unlicensed) its "minimum uniform scaling to touch"
+    SOCP often fails on them. `"polygons"` hands it `polygon_sides`-gons circumscribing each grown
+    ellipse instead (at most 1/cos(π/sides) − 1 larger, 0.5 % for 32): a slightly bigger model, so its
+    paths are still feasible in ours, and IRIS then needs only linear constraints.
     """
     from pydrake.geometry.optimization import (
         GraphOfConvexSetsOptions,
@@ -290,13 +304,19 @@ def plan_drake_gcs(problem: BenchProblem, *, max_regions: int, seed: int, max_mi
         Iris,
         IrisOptions,
         Point,
+        VPolytope,
     )
     from pydrake.planning import GcsTrajectoryOptimization
 
     logging.getLogger("drake").setLevel(logging.WARNING)
     t0 = time.perf_counter()
     stack = problem.stack
-    obstacles = [Hyperellipsoid(e.A, e.center) for e in problem.grown]
+    if obstacle_shape == "ellipses":
+        obstacles = [Hyperellipsoid(e.A, e.center) for e in problem.grown]
+    else:
+        angles = 2.0 * np.pi * np.arange(polygon_sides) / polygon_sides
+        unit = np.column_stack([np.cos(angles), np.sin(angles)]) / np.cos(np.pi / polygon_sides)
+        obstacles = [HPolyhedron(VPolytope(np.linalg.solve(e.A, (unit - e.b).T))) for e in problem.grown]
     domain = HPolyhedron.MakeBox(problem.bounds_min, problem.bounds_max)
     options = IrisOptions()
     rng = np.random.default_rng(seed)
@@ -343,7 +363,7 @@ def plan_drake_gcs(problem: BenchProblem, *, max_regions: int, seed: int, max_mi
             leg = leg[keep]
             path.append(leg if not path else leg[1:])
     except RuntimeError as error:  # Drake reports solver and IRIS failures as RuntimeError
-        return Attempt(path=None, time_s=time.perf_counter() - t0, reason=f"Drake: {error}".splitlines()[0][:200])
+        return Attempt(path=None, time_s=time.perf_counter() - t0, reason=" ".join(f"Drake: {error}".split())[:160])
     return Attempt(
         path=np.vstack(path),
         time_s=time.perf_counter() - t0,

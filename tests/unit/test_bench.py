@@ -129,3 +129,12 @@ def test_a_planner_that_returns_nothing_is_reported_failed(disc):
     result = summarise(spec, problem, [spec.call(problem, 0)], optimum_m=analytic_m, cold_s=None, peak_kib=None)
     assert not result.success and not result.collision and "gave up" in result.reason
     assert result.length_m is None and result.length_ratio is None
+
+
+def test_drake_on_circumscribed_polygons_is_feasible_in_the_ellipse_model(disc):
+    pytest.importorskip("pydrake")
+    problem, analytic_m = disc
+    attempt = planners.plan_drake_gcs(problem, max_regions=12, seed=0, obstacle_shape="polygons")
+    length = _length(problem, attempt)
+    assert check_path(problem, attempt.path).min_model_level >= 1.0 - 1e-6
+    assert analytic_m * (1 - 1e-6) <= length <= analytic_m * 1.08
