@@ -138,3 +138,21 @@ def test_drake_on_circumscribed_polygons_is_feasible_in_the_ellipse_model(disc):
     length = _length(problem, attempt)
     assert check_path(problem, attempt.path).min_model_level >= 1.0 - 1e-6
     assert analytic_m * (1 - 1e-6) <= length <= analytic_m * 1.08
+
+
+def test_missing_peers_are_skipped_with_a_note_that_says_how_to_install(disc, monkeypatch):
+    from rich.console import Console
+
+    from cvxnav.bench import runner
+
+    problem, _ = disc
+    why = {"ompl": "ompl not importable (ImportError); install the extra: pip install -e \".[bench]\"",
+           "drake": "drake not importable (ImportError); install the extra: pip install -e \".[bench]\""}
+    monkeypatch.setattr(runner.planners, "peer_status", lambda: why)
+    options = runner.BenchOptions(repeats=1, optimum_sides=64, fit_counts=(), scaling_counts=())
+    report = runner.run_bench(scenarios=[problem.scenario], options=options, command="test",
+                              console=Console(file=None, quiet=True), show_progress=False)
+    names = [p.planner for p in report.scenarios[0].planners]
+    assert names == [runner.CVXNAV, runner.PAPER, runner.OPTIMUM]
+    assert sum("skipped" in note and "pip install" in note for note in report.notes) == 2
+    assert report.targets.time_ratio_vs_bitstar == {} and report.scaling is None
