@@ -192,6 +192,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _cmd_certs(args: argparse.Namespace) -> int:
+    from cvxnav.certs import DEFAULT_ROUTER_HOSTS, write_deployment
+
+    hosts = tuple(dict.fromkeys([*args.router_host, *DEFAULT_ROUTER_HOSTS]))
+    written = write_deployment(out_dir=args.out, router_hosts=hosts, port=args.port)
+    print(f"wrote a CA, the router's and {len(written) // 2 - 1} client certificates with Zenoh configs to {args.out} "
+          f"(router names: {', '.join(hosts)})")
+    return EXIT_OK
+
+
 def _cmd_schemas(args: argparse.Namespace) -> int:
     from schemas.export import export_json_schemas
 
@@ -269,6 +279,14 @@ def build_parser() -> argparse.ArgumentParser:
     router = commands.add_parser("router", help="a Zenoh router in this process (default listen tcp/0.0.0.0:7447)")
     add_zenoh_arguments(router)
     router.set_defaults(handler=_cmd_router)
+
+    certs = commands.add_parser("certs", help="a CA, router and per-stage certificates and Zenoh configs (mutual TLS "
+                                             "+ access control)")
+    certs.add_argument("--out", type=Path, default=Path("certs"), help="directory to write")
+    certs.add_argument("--router-host", action="append", default=[], metavar="NAME_OR_IP",
+                       help="a name the stages reach the router by (repeatable; the first is in the stage configs)")
+    certs.add_argument("--port", type=int, default=7447, help="the router's TLS port")
+    certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
     plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/1 file")

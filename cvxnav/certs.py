@@ -1,0 +1,178 @@
+"""`cvxnav certs`: a private CA, one certificate per stage and one for the router, and their Zenoh configs.
+
+Mutual TLS: every link is TLS, the router only accepts clients whose certificate this CA signed, and
+clients only trust a router this CA signed (name checked against its subjectAltName). Zenoh's access
+control then matches the certificate's common name: only the pipeline's stages (and the monitor and
+an operator for `cvxnav status`) may put, subscribe, query or hold liveliness tokens under the prefix;
+everything else is denied by default. A certificate from another CA never gets a link; a valid
+certificate with another name gets a link that carries nothing.
+
+Keys are ECDSA P-256 in PKCS#8 PEM, certificates X.509 v3 (what rustls, Zenoh's TLS, requires: the
+leaf has CA:false and a subjectAltName; the CN is only used by the access-control subjects).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from schemas.wiring import MONITOR, STAGES
+
+ROUTER = "router"
+OPERATOR = "operator"  # the name `cvxnav status` connects with
+DEFAULT_ROUTER_HOSTS = ("localhost", "127.0.0.1", ROUTER)
+VALIDITY_DAYS = 365
+ACL_MESSAGES = (
+    "put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
+)
+
+
+def pipeline_names() -> tuple[str, ...]:
+    """Who may speak under the prefix: every stage of the wiring table, the monitor, the operator."""
+    return (*STAGES, MONITOR.name, OPERATOR)
+
+
+@dataclass(frozen=True)
+class Issued:
+    """A certificate and its private key."""
+
+    certificate: x509.Certificate
+    private_key: ec.EllipticCurvePrivateKey
+
+    def write(self, *, cert_path: Path, key_path: Path) -> None:
+        cert_path.write_bytes(self.certificate.public_bytes(serialization.Encoding.PEM))
+        key_path.write_bytes(self.private_key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
+        os.chmod(key_path, 0o600)
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cvxnav"),
+                      x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+
+
+def make_ca(*, common_name: str = "cvxnav CA", now: dt.datetime | None = None) -> Issued:
+    """A self-signed CA that signs only leaf certificates (path length 0)."""
+    now = now or dt.datetime.now(dt.timezone.utc)
+    key = ec.generate_private_key(ec.SECP256R1())
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(_name(common_name)).issuer_name(_name(common_name))
+        .public_key(key.public_key()).serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=VALIDITY_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                     content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                     key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return Issued(certificate=cert, private_key=key)
+
+
+def issue(*, ca: Issued, common_name: str, hosts: Sequence[str] = (), now: dt.datetime | None = None) -> Issued:
+    """A leaf for ``common_name`` usable as TLS server and client; ``hosts`` become DNS/IP subjectAltNames."""
+    now = now or dt.datetime.now(dt.timezone.utc)
+    key = ec.generate_private_key(ec.SECP256R1())
+    alt_names: list[x509.GeneralName] = []
+    for host in hosts or (common_name,):
+        try:
+            alt_names.append(x509.IPAddress(ipaddress.ip_address(host)))
+        except ValueError:
+            alt_names.append(x509.DNSName(host))
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(_name(common_name)).issuer_name(ca.certificate.subject)
+        .public_key(key.public_key()).serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=VALIDITY_DAYS))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=False, crl_sign=False,
+                                     content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                     key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                       critical=False)
+        .add_extension(x509.SubjectAlternativeName(alt_names), critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca.private_key.public_key()),
+                       critical=False)
+        .sign(ca.private_key, hashes.SHA256())
+    )
+    return Issued(certificate=cert, private_key=key)
+
+
+def access_control(*, names: Sequence[str], key_prefix: str = "cvxnav") -> dict:
+    """Zenoh 1.x ``access_control``: deny by default; the named certificates may do everything under the prefix."""
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [{"id": "pipeline", "messages": list(ACL_MESSAGES), "flows": ["ingress", "egress"],
+                   "permission": "allow", "key_exprs": [f"{key_prefix}/**"]}],
+        "subjects": [{"id": "pipeline-stages", "cert_common_names": list(names)}],
+        "policies": [{"id": "pipeline-policy", "rules": ["pipeline"], "subjects": ["pipeline-stages"]}],
+    }
+
+
+def router_config(*, cert_dir: Path, listen: Sequence[str], names: Sequence[str], key_prefix: str = "cvxnav") -> dict:
+    """The router's Zenoh config: TLS listener that demands a client certificate, plus access control."""
+    return {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": {
+            "root_ca_certificate": str(cert_dir / "ca.pem"),
+            "listen_certificate": str(cert_dir / f"{ROUTER}.pem"),
+            "listen_private_key": str(cert_dir / f"{ROUTER}.key"),
+            "enable_mtls": True,
+        }}},
+        "access_control": access_control(names=names, key_prefix=key_prefix),
+    }
+
+
+def client_config(*, cert_dir: Path, name: str, connect: Sequence[str]) -> dict:
+    """A stage's Zenoh config: a client of the router over TLS, presenting its own certificate."""
+    return {
+        "mode": "client",
+        "connect": {"endpoints": list(connect)},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": {
+            "root_ca_certificate": str(cert_dir / "ca.pem"),
+            "connect_certificate": str(cert_dir / f"{name}.pem"),
+            "connect_private_key": str(cert_dir / f"{name}.key"),
+            "enable_mtls": True,
+            "verify_name_on_connect": True,
+        }}},
+    }
+
+
+def write_deployment(*, out_dir: Path, router_hosts: Sequence[str] = DEFAULT_ROUTER_HOSTS, port: int = 7447,
+                     key_prefix: str = "cvxnav", names: Sequence[str] | None = None) -> list[Path]:
+    """CA, router and per-name certificates, and a ready Zenoh config per name, into ``out_dir``."""
+    out_dir = out_dir.resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = tuple(names or pipeline_names())
+    ca = make_ca()
+    ca.write(cert_path=out_dir / "ca.pem", key_path=out_dir / "ca.key")
+    issue(ca=ca, common_name=ROUTER, hosts=router_hosts).write(cert_path=out_dir / f"{ROUTER}.pem",
+                                                               key_path=out_dir / f"{ROUTER}.key")
+    written = [out_dir / "ca.pem", out_dir / f"{ROUTER}.pem"]
+    router_json = out_dir / f"{ROUTER}.json5"
+    router_json.write_text(json.dumps(router_config(cert_dir=out_dir, listen=[f"tls/0.0.0.0:{port}"], names=names,
+                                                    key_prefix=key_prefix), indent=2) + "\n")
+    written.append(router_json)
+    for name in names:
+        issue(ca=ca, common_name=name).write(cert_path=out_dir / f"{name}.pem", key_path=out_dir / f"{name}.key")
+        config_path = out_dir / f"{name}.json5"
+        config_path.write_text(json.dumps(client_config(cert_dir=out_dir, name=name,
+                                                        connect=[f"tls/{router_hosts[0]}:{port}"]), indent=2) + "\n")
+        written += [out_dir / f"{name}.pem", config_path]
+    return written
