@@ -208,7 +208,14 @@ def _ccw(vertices: FloatArray) -> FloatArray:
 def _hull_vertices(geom: BaseGeometry) -> FloatArray:
     """Vertices of a convex hull geometry: CCW ring for a polygon, endpoints for a segment, one point."""
     if isinstance(geom, shapely.Polygon):
-        return _ccw(np.asarray(geom.exterior.coords)[:-1])
+        ring = np.asarray(geom.exterior.coords)[:-1]
+        extent = float(np.ptp(ring, axis=0).max())
+        if geom.area > 1e-12 * extent**2:
+            return _ccw(ring)
+        # A hull of points that coincide to rounding is a segment: keep its two extreme points.
+        far = np.linalg.norm(ring[:, None, :] - ring[None, :, :], axis=2)
+        i, j = np.unravel_index(np.argmax(far), far.shape)
+        return ring[[i, j]]
     return np.asarray(geom.coords, dtype=float).reshape(-1, 2)
 
 
