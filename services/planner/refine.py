@@ -20,8 +20,13 @@ that the optimiser cannot earn a sharper turn by shortening steps, each step kee
 least lᵢ (a fixed fraction of its previous length) through the linearised dᵢᵀ(zᵢ₊₁ − zᵢ) ≥ lᵢ (dᵢ the
 step's previous direction: again an inner approximation of ‖zᵢ₊₁ − zᵢ‖ ≥ lᵢ); the curvature budget at a
 point uses the shorter of its two previous steps, and iterations continue until the curvature measured
-with the actual spacing meets the bound. The curvature cone carries a penalised slack so every subproblem
-is feasible and an unattainable bound shows up as slack rather than as a solver failure.
+with the actual spacing meets the bound.
+
+The curvature cone and each point's half-planes carry penalised slacks (elastic mode, an exact ℓ₁
+penalty): every subproblem is feasible — a robot that has just sensed an obstacle close ahead, or a
+goal inside a newly grown cover, would otherwise make it infeasible — and an unattainable constraint
+shows up as slack rather than as a solver failure. The exact checks downstream (the refined path
+outside every ellipse, the smoother's proof on the continuous curve) decide what is published.
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ class RefineSettings:
     step_m: float = 0.1  # the paper's step bound
     spacing_m: float = 0.08  # target point spacing: leaves the step bound room for the path to lengthen
     level: float = 1.02  # ‖A z + b‖ the refined points keep: margin for the smoothed curve
+    start_level: float = 1.003  # ... within one turning radius of the start, where the car cannot yet steer away
     curvature_factor: float = 0.9  # plan to this fraction of the car's curvature bound
     step_shrink: float = 0.8  # a step may shrink to this fraction of its length per iteration
     curvature_met_factor: float = 0.97  # converged once the actual curvature is within this of the bound
@@ -102,6 +108,7 @@ class _CvxpyPathProblem:
         self.solver = solver
         self.z = cp.Variable((n, 2))
         self.slack = cp.Variable(n - 2, nonneg=True)
+        self.elastic = cp.Variable(n, nonneg=True)
         self.pinned = cp.Parameter(n, nonneg=True)
         self.pinned_x = cp.Parameter(n)  # pinned · x
         self.pinned_y = cp.Parameter(n)
@@ -127,7 +134,7 @@ class _CvxpyPathProblem:
             self.heading_normal @ first_step == 0,
             self.heading @ first_step >= 0,
             *(
-                cp.multiply(gx, z[:, 0]) + cp.multiply(gy, z[:, 1]) >= h
+                cp.multiply(gx, z[:, 0]) + cp.multiply(gy, z[:, 1]) + self.elastic >= h
                 for gx, gy, h in zip(self.gx, self.gy, self.h)
             ),
             cp.norm(diff, 2, axis=1) <= step_m,
@@ -137,10 +144,10 @@ class _CvxpyPathProblem:
             *(z[:, axis] >= self.lo[axis] for axis in range(2)),
             *(z[:, axis] <= self.hi[axis] for axis in range(2)),
         ]
-        objective = cp.sum_squares(diff) + slack_weight * cp.sum(self.slack)
+        objective = cp.sum_squares(diff) + slack_weight * (cp.sum(self.slack) + cp.sum(self.elastic))
         self.problem = cp.Problem(cp.Minimize(objective), constraints)
 
-    def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray]:
+    def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
         self.pinned.value = data.pinned
         self.pinned_x.value = data.pinned * data.pinned_points[:, 0]
         self.pinned_y.value = data.pinned * data.pinned_points[:, 1]
@@ -157,20 +164,21 @@ class _CvxpyPathProblem:
         self.problem.solve(solver=self.solver, ignore_dpp=True)
         if self.problem.status not in _OK:
             raise SolverFailure(f"path subproblem: solver status {self.problem.status}")
-        return self.z.value, self.slack.value
+        return self.z.value, self.slack.value, self.elastic.value
 
 
 class _ClarabelPathProblem:
     """The same subproblem handed to Clarabel directly, with a sparsity pattern fixed per size.
 
-    Variables x = (x₀, y₀, x₁, y₁, …, slack₁ … slackₙ₋₂); Clarabel solves min ½xᵀPx + qᵀx subject to
+    Variables x = (x₀, y₀, x₁, y₁, …, slack₁ … slackₙ₋₂, elastic₀ … elasticₙ₋₁); Clarabel solves
+    min ½xᵀPx + qᵀx subject to
     b − A x ∈ K. The matrix is assembled once, with explicit zeros wherever a coefficient can change
     (half-planes, heading, step directions); each iteration only overwrites A's and b's values in
     place (`DefaultSolver.update`), so the symbolic factorisation is reused and no modelling layer
     runs per solve. Row blocks, in cone order:
       zero      pinned points (2 per point), heading normal · (z₁ − z₀) = 0
-      nonneg    −heading · (z₁ − z₀) ≤ 0; −g·zᵢ ≤ −h per slot; −dᵢ·(zᵢ₊₁ − zᵢ) ≤ −lᵢ;
-                z ≤ min(c + τ, hi); −z ≤ −max(c − τ, lo); −slack ≤ 0
+      nonneg    −heading · (z₁ − z₀) ≤ 0; −g·zᵢ − elasticᵢ ≤ −h per slot; −dᵢ·(zᵢ₊₁ − zᵢ) ≤ −lᵢ;
+                z ≤ min(c + τ, hi); −z ≤ −max(c − τ, lo); −slack ≤ 0; −elastic ≤ 0
       SOC(3)    (step_m, zᵢ₊₁ − zᵢ) for each step
       SOC(3)    (budgetᵢ + slackᵢ, zᵢ₊₁ − 2zᵢ + zᵢ₋₁) for each interior point
     """
@@ -178,7 +186,7 @@ class _ClarabelPathProblem:
     def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float) -> None:
         self.n, self.slots, self.pinned_count = n, slots, pinned_count
         nz = 2 * n
-        self.size = nz + (n - 2)
+        self.size = nz + (n - 2) + n
         rows: list[np.ndarray] = []
         cols: list[np.ndarray] = []
         vals: list[np.ndarray] = []
@@ -200,6 +208,7 @@ class _ClarabelPathProblem:
             return 2 * np.asarray(i) + 1
 
         slack = nz + np.arange(n - 2)
+        elastic = nz + (n - 2) + np.arange(n)
         step = np.arange(n - 1)
         mid = np.arange(1, n - 1)
         k = np.arange(pinned_count)
@@ -212,12 +221,14 @@ class _ClarabelPathProblem:
         self.heading_row = block(1, [(np.zeros(4, int), np.array([0, 1, 2, 3]), np.zeros(4))])
         obstacle_i = np.repeat(np.arange(n), slots)  # row r = i * slots + s
         self.obstacle_rows = block(n * slots, [(np.arange(n * slots), xs(obstacle_i), np.zeros(n * slots)),
-                                               (np.arange(n * slots), ys(obstacle_i), np.zeros(n * slots))])
+                                               (np.arange(n * slots), ys(obstacle_i), np.zeros(n * slots)),
+                                               (np.arange(n * slots), elastic[obstacle_i], -np.ones(n * slots))])
         self.floor_rows = block(n - 1, [(step, xs(step), np.zeros(n - 1)), (step, ys(step), np.zeros(n - 1)),
                                         (step, xs(step + 1), np.zeros(n - 1)), (step, ys(step + 1), np.zeros(n - 1))])
         self.upper_rows = block(nz, [(np.arange(nz), np.arange(nz), np.ones(nz))])
         self.lower_rows = block(nz, [(np.arange(nz), np.arange(nz), -np.ones(nz))])
         self.slack_rows = block(n - 2, [(np.arange(n - 2), slack, -np.ones(n - 2))])
+        self.elastic_rows = block(n, [(np.arange(n), elastic, -np.ones(n))])
         nonneg_rows = self._row - zero_rows
         # Second-order cones: step bound, then curvature.
         t = 3 * step
@@ -242,9 +253,9 @@ class _ClarabelPathProblem:
         self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
         self._b[self.obstacle_rows] = 1.0  # unused slots: 0 ≤ 1
         D = sparse.diags([np.ones(2 * (n - 1)), -np.ones(2 * (n - 1))], [2, 0], shape=(2 * (n - 1), nz))
-        P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((n - 2, n - 2))]).tocsc()
+        P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((2 * n - 2, 2 * n - 2))]).tocsc()
         self._P = sparse.triu(P).tocsc()
-        self._q = np.concatenate([np.zeros(nz), np.full(n - 2, slack_weight)])
+        self._q = np.concatenate([np.zeros(nz), np.full(2 * n - 2, slack_weight)])
         self._cones = [
             clarabel.ZeroConeT(zero_rows),
             clarabel.NonnegativeConeT(nonneg_rows),
@@ -263,7 +274,7 @@ class _ClarabelPathProblem:
         r = self._entries[0]
         return np.flatnonzero((r >= rows.start) & (r < rows.stop))
 
-    def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray]:
+    def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
         n, slots = self.n, self.slots
         v = self._values
         b = self._b
@@ -280,7 +291,7 @@ class _ClarabelPathProblem:
         v[self._entry_slice(self.heading_row)] = [hx, hy, -hx, -hy]
         obstacle = self._entry_slice(self.obstacle_rows)
         v[obstacle[: n * slots]] = -data.gx.reshape(-1)
-        v[obstacle[n * slots :]] = -data.gy.reshape(-1)
+        v[obstacle[n * slots : 2 * n * slots]] = -data.gy.reshape(-1)
         b[self.obstacle_rows] = -data.h.reshape(-1)
         floor = self._entry_slice(self.floor_rows)
         d = data.step_direction
@@ -302,7 +313,7 @@ class _ClarabelPathProblem:
         if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
             raise SolverFailure(f"path subproblem: Clarabel status {solution.status}")
         x = np.asarray(solution.x)
-        return x[: 2 * n].reshape(n, 2), x[2 * n :]
+        return x[: 2 * n].reshape(n, 2), x[2 * n : 3 * n - 2], x[3 * n - 2 :]
 
     def _rebuild_pins(self, pinned: np.ndarray) -> None:
         """Point the pinned rows at the pinned points' columns and set the solver up afresh."""
@@ -353,9 +364,9 @@ def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[
 
 
 def _linearise(
-    z: FloatArray, stack: EllipseStack, centers: FloatArray, reach: FloatArray, *, slots: int, level: float, trust_m: float
+    z: FloatArray, stack: EllipseStack, centers: FloatArray, reach: FloatArray, *, slots: int, level: FloatArray, trust_m: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Half-planes nᵀ(A z + b) ≥ level at each point for its nearest ellipses (unused slots: 0 ≥ −1)."""
+    """Half-planes nᵀ(A z + b) ≥ levelᵢ at each point for its nearest ellipses (unused slots: 0 ≥ −1)."""
     n = len(z)
     gx = np.zeros((n, slots))
     gy = np.zeros((n, slots))
@@ -374,7 +385,7 @@ def _linearise(
     normal = u / np.linalg.norm(u, axis=2, keepdims=True)
     g = np.einsum("nkij,nki->nkj", A, normal)  # Aᵀ n
     gx[:, :k], gy[:, :k] = g[..., 0], g[..., 1]
-    h[:, :k] = level - np.einsum("nki,nki->nk", normal, b)
+    h[:, :k] = level[:, None] - np.einsum("nki,nki->nk", normal, b)
     gx[~within], gy[~within], h[~within] = 0.0, 0.0, -1.0
     return gx, gy, h
 
@@ -414,16 +425,24 @@ def refine(
     pinned_points = z.copy()
     heading = np.zeros(2) if heading_rad is None else np.array([np.cos(heading_rad), np.sin(heading_rad)])
     kappa = settings.curvature_factor * max_curvature
+    # The margin above level 1 gives the smoothed curve room; a robot that has just sensed an obstacle
+    # close ahead cannot give that room within its first turning radius, so there the plan only has to
+    # stay outside (the smoother still proves the continuous curve clear).
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
+    level = np.where(along < 1.0 / max_curvature, min(settings.start_level, settings.level), settings.level)
 
     previous = np.inf
     iterations = 0
     slack = np.zeros(n - 2)
     for iterations in range(1, settings.max_iterations + 1):
         gx, gy, h = _linearise(
-            z, stack, centers, reach, slots=settings.slots, level=settings.level, trust_m=settings.trust_region_m
+            z, stack, centers, reach, slots=settings.slots, level=level, trust_m=settings.trust_region_m
         )
         delta = np.diff(z, axis=0)
         step = np.linalg.norm(delta, axis=1)
+        direction = delta / np.maximum(step, 1e-12)[:, None]
+        if heading_rad is not None:
+            direction[0] = heading  # the first step is pinned to the heading: its floor must be along it
         data = _Subproblem(
             pinned=pinned,
             pinned_points=pinned_points,
@@ -434,13 +453,14 @@ def refine(
             center=z,
             trust_m=settings.trust_region_m,
             curvature_budget=kappa * np.minimum(step[:-1], step[1:]) ** 2,
-            step_direction=delta / np.maximum(step, 1e-12)[:, None],
+            step_direction=direction,
             step_floor=settings.step_shrink * step,
             lo=np.asarray(bounds_min, dtype=float),
             hi=np.asarray(bounds_max, dtype=float),
         )
-        z, slack = problem.solve(data)
-        cost = float(np.sum(np.diff(z, axis=0) ** 2) + settings.slack_weight * np.sum(np.maximum(slack, 0.0)))
+        z, slack, elastic = problem.solve(data)
+        penalty = np.sum(np.maximum(slack, 0.0)) + np.sum(np.maximum(elastic, 0.0))
+        cost = float(np.sum(np.diff(z, axis=0) ** 2) + settings.slack_weight * penalty)
         stalled = previous - cost <= settings.rel_tolerance * max(abs(cost), 1e-9)
         met = _curvature_met(z, settings.curvature_met_factor * max_curvature)
         if stalled and (met or iterations >= settings.min_iterations_unmet):

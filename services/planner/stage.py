@@ -41,8 +41,11 @@ class PlannerConfig:
     bounds_max: FloatArray
     max_curvature: float
     inflation_m: float
-    refine: RefineSettings = field(default_factory=RefineSettings)
-    repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8), (1.1, 0.65))  # (level, curvature_factor)
+    # A sensed obstacle's cover grows as more of its surface comes into view, so a plan that hugged
+    # the old cover at the known-map margin (level 1.02) soon lies inside the new one, often where the
+    # car can no longer steer away. Online, plans keep a wider margin.
+    refine: RefineSettings = field(default_factory=lambda: RefineSettings(level=1.1))
+    repairs: tuple[tuple[float, float], ...] = ((1.15, 0.8), (1.2, 0.65))  # (level, curvature_factor)
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
 
     @classmethod
