@@ -15,8 +15,8 @@ Two routes solve it:
   algorithm for the computation of minimum-volume enclosing ellipsoids") to a coarse tolerance and
   finished by Newton steps on the support; pure numpy.
 
-Both work on the convex-hull vertices (the MVEE of a set is the MVEE of its hull), in coordinates
-centred on the mean and scaled to unit spread (affine invariance: the MVEE commutes with affine maps),
+Both work on the convex-hull vertices (the MVEE of a set is the MVEE of its hull), in whitened
+coordinates (centred, unit spread along both principal axes: the MVEE commutes with affine maps),
 and both end with the same containment guarantee: the fitted ellipse is scaled about its centre by
 the largest level ‖A xᵢ + b‖ if that exceeds 1, so every input point has level ≤ 1 up to rounding.
 
@@ -60,13 +60,15 @@ def _as_points(points: ArrayLike) -> FloatArray:
     return z
 
 
-def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatArray, float]:
-    """Hull vertices of the (possibly fattened) set, in normalised coordinates.
+def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Hull vertices of the (possibly fattened) set, in whitened coordinates.
 
-    Returns (vertices_normalised, shift, scale) with x = shift + scale · x_normalised.
+    Returns (vertices_normalised, shift, transform) with x = shift + transform · x_normalised.
     The set is degenerate when its spread across its principal axis is below `eps_m` (collinear,
     duplicate or single points); it is then replaced by its two extreme points along the principal
-    axis ⊕ {±eps e₁, ±eps e₂}, a set that contains the original points.
+    axis ⊕ {±eps e₁, ±eps e₂}, a set that contains the original points. The MVEE is affine-equivariant
+    (MVEE(T P) = T MVEE(P)), so fitting in coordinates where the set has unit spread along both
+    principal axes gives the same ellipse, and a 10 m × 2 mm set is as well conditioned as a disc.
     """
     shift = z.mean(axis=0)
     centred = z - shift
@@ -77,16 +79,23 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
         ends = centred[[int(np.argmin(along)), int(np.argmax(along))]]
         cross = eps_m * np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
         centred = (ends[:, None, :] + cross[None, :, :]).reshape(-1, 2)
-    scale = float(np.max(np.abs(centred)))
-    unit = centred / scale
+        shift = shift + centred.mean(axis=0)
+        centred = centred - centred.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    spread = sv / np.sqrt(len(centred))
+    transform = vt.T * spread  # columns: principal axes scaled by their spread
+    unit = (centred @ vt.T) / spread
     hull = ConvexHull(unit)
-    return unit[hull.vertices], shift, scale
+    return unit[hull.vertices], shift, transform
 
 
-def _denormalise(A_unit: FloatArray, b_unit: FloatArray, *, shift: FloatArray, scale: float) -> Ellipse:
-    """‖A' (x − shift)/scale + b'‖ ≤ 1  ⇔  ‖A x + b‖ ≤ 1 with A = A'/scale, b = b' − A shift."""
-    A = A_unit / scale
-    return Ellipse(A=A, b=b_unit - A @ shift)
+def _denormalise(A_unit: FloatArray, b_unit: FloatArray, *, shift: FloatArray, transform: FloatArray) -> Ellipse:
+    """‖A' T⁻¹(x − shift) + b'‖ ≤ 1 as {x : ‖A x + b‖ ≤ 1} with A symmetric: A = (MᵀM)^{1/2}, M = A' T⁻¹."""
+    M = A_unit @ np.linalg.inv(transform)
+    center = shift + transform @ np.linalg.solve(A_unit, -b_unit)
+    w, R = np.linalg.eigh(M.T @ M)
+    A = R @ np.diag(np.sqrt(w)) @ R.T
+    return Ellipse(A=A, b=-A @ center)
 
 
 def _contain(ellipse: Ellipse, z: FloatArray, *, max_violation: float) -> Ellipse:
@@ -134,7 +143,7 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
     the cached problems are shared.
     """
     z = _as_points(points)
-    vertices, shift, scale = _support_points(z, eps_m=eps_m)
+    vertices, shift, transform = _support_points(z, eps_m=eps_m)
     size = _bucket(len(vertices))
     padded = np.vstack([vertices, np.repeat(vertices[:1], size - len(vertices), axis=0)])
     problem, param, A, b = _mvee_problem(size)
@@ -150,7 +159,7 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
     A_unit = 0.5 * (A.value + A.value.T)
     if np.linalg.eigvalsh(A_unit)[0] <= 0.0:
         raise FitError(f"MVEE solve with {solver} returned a shape matrix that is not positive definite")
-    ellipse = _denormalise(A_unit, np.asarray(b.value, dtype=float), shift=shift, scale=scale)
+    ellipse = _denormalise(A_unit, np.asarray(b.value, dtype=float), shift=shift, transform=transform)
     return _contain(ellipse, z, max_violation=_MAX_SOLVER_VIOLATION)
 
 
@@ -238,7 +247,7 @@ def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_
     optimal weights u: centre c = Σ uᵢ xᵢ, shape E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
     """
     z = _as_points(points)
-    vertices, shift, scale = _support_points(z, eps_m=eps_m)
+    vertices, shift, transform = _support_points(z, eps_m=eps_m)
     Q = np.vstack([vertices.T, np.ones(len(vertices))])
     u = np.full(len(vertices), 1.0 / len(vertices))
     u, done = _todd_yildirim(Q, u, tol=max(tol, 3e-2), max_iter=max_iter)
@@ -258,5 +267,5 @@ def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_
     if w[0] <= 0.0:
         raise FitError("MVEE weights collapsed onto a degenerate support")
     A_unit = R @ np.diag(1.0 / np.sqrt(2.0 * w)) @ R.T
-    ellipse = _denormalise(A_unit, -A_unit @ c, shift=shift, scale=scale)
+    ellipse = _denormalise(A_unit, -A_unit @ c, shift=shift, transform=transform)
     return _contain(ellipse, z, max_violation=max(1e-3, 10.0 * tol))
