@@ -70,8 +70,11 @@ def test_limits_hold_every_step(targets: list[tuple[float, float]], dt_s: float)
         assert 0.0 <= new.speed_mps <= PAPER.max_speed_mps
         assert new.speed_mps - state.speed_mps <= PAPER.max_accel_mps2 * dt_s + 1e-12
         assert state.speed_mps - new.speed_mps <= PAPER.max_decel_mps2 * dt_s + 1e-12
-        # Distance covered never exceeds max speed × time.
-        assert math.hypot(new.x_m - state.x_m, new.y_m - state.y_m) <= PAPER.max_speed_mps * dt_s + 1e-9
+        # Distance covered never exceeds max speed × time. The speed is the rear axle's; while
+        # steering at δ the footprint centre, L/2 ahead of it, moves √(1 + (tan δ / 2)²) faster.
+        centre_factor = math.hypot(1.0, math.tan(PAPER.max_steering_rad) / 2.0)
+        step_m = math.hypot(new.x_m - state.x_m, new.y_m - state.y_m)
+        assert step_m <= PAPER.max_speed_mps * dt_s * centre_factor + 1e-9
         assert -math.pi <= new.theta_rad <= math.pi
         state = new
 
