@@ -6,7 +6,8 @@ answers and integrates the car. `run_sim` is the Zenoh shell around it, in one o
 - lockstep (default): at each sensor tick the sim publishes the state and the scan, then waits (up to
   `answer_timeout_s` of wall time) for the pipeline's answer to that scan before integrating the next
   sensor period. The answer is the SmoothPath carrying the scan's `scan_seq` (status ok or no_path), or
-  an error status of any stage for that scan (a rejected input: the previous good path stays in force).
+  an error status of any stage for that scan: then no path could be verified against what the car now
+  knows, and the car brakes rather than drive on a path checked only against older obstacles.
   Sim time then depends only on the scenario and the seed, so two runs give the same trajectory, and a
   run goes as fast as the pipeline answers.
 - realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
@@ -141,6 +142,15 @@ class SimCore:
         self.path_time_s = self.t_s
         self.progress_m = None
         self.no_path_since_s = None
+
+    def reject(self, reason: str) -> None:
+        """The pipeline could not verify a path for the newest scan: brake rather than drive on.
+
+        The previous path was verified against older obstacles; a replan that fails verification
+        usually means the newest ones invalidate it, so it is never driven on after such an answer.
+        """
+        self.path = None
+        self.no_path_reason = reason
 
     @property
     def replans(self) -> int:
@@ -322,8 +332,10 @@ def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
                 answered = True
                 break
             answers.drain_statuses()
-            if any(abs(s - stamp) <= 1e-9 for s in answers.rejected):
-                answered = True  # a stage rejected this scan's data: the previous path stays in force
+            reasons = [reason for s, reason in answers.rejected.items() if abs(s - stamp) <= 1e-9]
+            if reasons:
+                core.reject(reasons[0])  # no verified path for what the car now knows: brake
+                answered = True
                 break
             if seq == 0 and time.monotonic() >= resend_at:
                 publish_tick()  # routes to fresh peers may not have been up for the very first scan
@@ -346,6 +358,12 @@ def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
         if answer is not None:
             core.accept(answer)
         answers.drain_statuses()
+        published = set(answers.stamps.values())
+        concerning = [reason for stamp, reason in answers.rejected.items() if stamp in published]
+        if concerning:
+            # A stage could not verify a path for a scan the car sent: brake until a verified one
+            # arrives. Errors about anything else (a malformed message on a key) leave the plan in force.
+            core.reject(concerning[0])
         answers.rejected.clear()
         wake = started + (core.step_index + 1) * core.config.dt_s
         stop_event.wait(max(0.0, wake - time.monotonic()))
