@@ -108,7 +108,8 @@ def free_start(ellipses: list[Ellipse], *, start: FloatArray, inflation_m: float
 class PlannerStage:
     def __init__(self, *, config: PlannerConfig) -> None:
         self.config = config
-        self.state: RobotState | None = None
+        self.state: RobotState | None = None  # the newest robot state
+        self.pending: Ellipsoids | None = None  # ellipsoids waiting for the state of their scan
         self.plan: FloatArray | None = None  # the current plan (points), None when there is none
         self.plan_goal_base = 0  # goals reached when the current plan was made
         self.plan_id = 0
@@ -119,14 +120,26 @@ class PlannerStage:
         return cls(config=PlannerConfig.from_scenario(scenario))
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        """Plan for a scan once both its ellipsoids and the robot state of that scan are here.
+
+        The state comes straight from the sim while the ellipsoids come through two stages, so either
+        may arrive first; pairing them by scan (RobotState.header.seq == Ellipsoids.scan_seq) makes
+        the answer independent of arrival order, and a lockstep run deterministic.
+        """
         if isinstance(message, RobotState):
             self.state = message
+            pending, self.pending = self.pending, None
+            if pending is not None and pending.scan_seq == message.header.seq:
+                return self._plan(pending, message)
             return []
         if not isinstance(message, Ellipsoids):
             raise StageInputError(f"planner does not handle {topic!r}")
-        if self.state is None:
-            raise StageInputError("no robot state received yet")
-        state = self.state
+        if self.state is None or self.state.header.seq < message.scan_seq:
+            self.pending = message  # the state of this scan is still on its way
+            return []
+        return self._plan(message, self.state)
+
+    def _plan(self, message: Ellipsoids, state: RobotState) -> Outputs:
         goal_base = state.goals_reached
         if goal_base >= len(self.config.goals):
             raise StageInputError("every goal is already reached")
