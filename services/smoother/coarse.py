@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cvxnav.geometry import Ellipse, FloatArray
+from cvxnav.geometry import FloatArray
 from schemas.scenario import Scenario
-from services.smoother.core import Smoothed, bspline, sample, verify
+from services.smoother.core import Smoothed, smooth
 from services.smoother.stage import SmootherConfig, SmootherStage
 
 STRIDE = 2
@@ -31,25 +31,12 @@ def decimate(points: FloatArray, *, stride: int = STRIDE) -> FloatArray:
     return np.vstack([z[:-1:stride], z[-1:]])
 
 
-def smooth_coarse(
-    control: FloatArray,
-    *,
-    ellipses: list[Ellipse],
-    max_curvature: float,
-    heading_rad: float | None,
-    goals: FloatArray,
-    goal_tolerance_m: float,
-    bounds_min: FloatArray,
-    bounds_max: FloatArray,
-    output_spacing_m: float = 0.05,
-) -> Smoothed:
-    """Same contract as `services.smoother.core.smooth`, over the decimated control polygon."""
-    control = np.asarray(control, dtype=float)
-    curve = bspline(decimate(control))
-    verification = verify(curve, ellipses=ellipses, max_curvature=max_curvature, start=control[0],
-                          heading_rad=heading_rad, goals=goals, goal_tolerance_m=goal_tolerance_m,
-                          bounds_min=bounds_min, bounds_max=bounds_max)
-    return Smoothed(points=sample(curve, spacing_m=output_spacing_m), verification=verification)
+def smooth_coarse(control: FloatArray, **verification: object) -> Smoothed:
+    """Same contract as `services.smoother.core.smooth`, over the decimated control polygon.
+
+    Decimation keeps the first point, so the curve still starts at the start, along the heading.
+    """
+    return smooth(decimate(control), **verification)
 
 
 def factory(scenario: Scenario) -> SmootherStage:
