@@ -18,9 +18,10 @@ curvature bound written as a second-order cone, ‖zᵢ₊₁ − 2zᵢ + zᵢ�
 of points at least s apart (turning by φ over steps ≥ s gives ‖Δ²z‖ ≳ s φ and curvature ≈ φ / s). So
 that the optimiser cannot earn a sharper turn by shortening steps, each step keeps a length of at
 least lᵢ (a fixed fraction of its previous length) through the linearised dᵢᵀ(zᵢ₊₁ − zᵢ) ≥ lᵢ (dᵢ the
-step's previous direction: again an inner approximation of ‖zᵢ₊₁ − zᵢ‖ ≥ lᵢ); the curvature budget at a
-point uses the shorter of its two previous steps, and iterations continue until the curvature measured
-with the actual spacing meets the bound.
+step's previous direction: again an inner approximation of ‖zᵢ₊₁ − zᵢ‖ ≥ lᵢ), and the curvature budget
+at a point is κ lᵢ² for the smaller of its two floors: since the actual steps are no shorter, the
+actual curvature ‖Δ²z‖ / s² stays within κ whatever the optimiser does with the spacing. Iterations
+continue until the curvature measured with the actual spacing meets the bound.
 
 The curvature cone and each point's half-planes carry penalised slacks (elastic mode, an exact ℓ₁
 penalty): every subproblem is feasible — a robot that has just sensed an obstacle close ahead, or a
@@ -53,8 +54,8 @@ class RefineSettings:
     spacing_m: float = 0.08  # target point spacing: leaves the step bound room for the path to lengthen
     level: float = 1.02  # ‖A z + b‖ the refined points keep: margin for the smoothed curve
     start_level: float = 1.003  # ... within one turning radius of the start, where the car cannot yet steer away
-    curvature_factor: float = 0.9  # plan to this fraction of the car's curvature bound
-    step_shrink: float = 0.8  # a step may shrink to this fraction of its length per iteration
+    curvature_factor: float = 0.97  # plan to this fraction of the car's curvature bound ...
+    step_shrink: float = 0.95  # ... at steps no shorter than this fraction of the previous ones
     curvature_met_factor: float = 0.97  # converged once the actual curvature is within this of the bound
     min_iterations_unmet: int = 8  # iterations to spend on an unmet curvature bound before giving up
     slots: int = 8  # nearest ellipses linearised at each point
@@ -440,6 +441,7 @@ def refine(
         )
         delta = np.diff(z, axis=0)
         step = np.linalg.norm(delta, axis=1)
+        floor = settings.step_shrink * step
         direction = delta / np.maximum(step, 1e-12)[:, None]
         if heading_rad is not None:
             direction[0] = heading  # the first step is pinned to the heading: its floor must be along it
@@ -452,9 +454,9 @@ def refine(
             h=h,
             center=z,
             trust_m=settings.trust_region_m,
-            curvature_budget=kappa * np.minimum(step[:-1], step[1:]) ** 2,
+            curvature_budget=kappa * np.minimum(floor[:-1], floor[1:]) ** 2,
             step_direction=direction,
-            step_floor=settings.step_shrink * step,
+            step_floor=floor,
             lo=np.asarray(bounds_min, dtype=float),
             hi=np.asarray(bounds_max, dtype=float),
         )
