@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,9 +19,9 @@ from schemas.files import EllipseModel, PlanFile, PlanTimings
 from schemas.scenario import Scenario
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.gap import group_ellipses
-from services.planner.core import PathPlan, plan_path
+from services.planner.core import plan_until_verified
 from services.planner.refine import RefineSettings
-from services.smoother.core import Smoothed, smooth
+from services.smoother.core import smooth
 
 
 @dataclass(frozen=True)
@@ -79,30 +79,23 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         bounds_max=np.array(scenario.bounds.max),
         max_curvature=scenario.max_curvature,
     )
-    attempts = [settings.refine] + [
-        replace(settings.refine, level=level, curvature_factor=factor) for level, factor in settings.repairs
-    ]
-    plan: PathPlan | None = None
-    smoothed: Smoothed | None = None
-    for attempt in attempts:
-        with clock.stage("optimize"):
-            plan = plan_path(**problem, settings=attempt)
-        if plan.status != "ok":
-            break
-        with clock.stage("smooth"):
-            smoothed = smooth(
-                plan.points,
-                ellipses=grown,
-                max_curvature=scenario.max_curvature,
-                heading_rad=scenario.start.theta,
-                goals=scenario.goals_array,
-                goal_tolerance_m=scenario.goal_tolerance,
-                bounds_min=problem["bounds_min"],
-                bounds_max=problem["bounds_max"],
-            )
-        if smoothed.verification.ok:
-            break
-    ok = plan is not None and plan.status == "ok" and smoothed is not None and smoothed.verification.ok
+    plan, smoothed = plan_until_verified(
+        **problem,
+        settings=settings.refine,
+        repairs=settings.repairs,
+        timer=clock.stage,
+        smooth_fn=lambda points: smooth(
+            points,
+            ellipses=grown,
+            max_curvature=scenario.max_curvature,
+            heading_rad=scenario.start.theta,
+            goals=scenario.goals_array,
+            goal_tolerance_m=scenario.goal_tolerance,
+            bounds_min=problem["bounds_min"],
+            bounds_max=problem["bounds_max"],
+        ),
+    )
+    ok = plan.status == "ok" and smoothed is not None and smoothed.verification.ok
     for name in ("cluster", "fit", "group", "optimize", "smooth"):
         clock.ms.setdefault(name, 0.0)
     clock.ms["total"] = 1e3 * (time.perf_counter() - t0)
@@ -110,7 +103,7 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         scenario=scenario.name,
         status="ok" if ok else "no_path",
         path=smoothed.points.tolist() if ok else [],
-        raw_path=plan.points.tolist() if plan is not None else [],
+        raw_path=plan.points.tolist(),
         ellipsoids=[EllipseModel.from_ellipse(e) for e in grown],
         timings_ms=PlanTimings(**clock.ms),
     )

@@ -3,7 +3,9 @@ refine by convex optimisation, and check the refined path exactly before anyone 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -11,6 +13,7 @@ import numpy as np
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
 from services.planner.refine import RefineSettings, SolverFailure, refine
 from services.planner.route import tangent_route
+from services.smoother.core import Smoothed
 
 
 @dataclass(frozen=True)
@@ -130,3 +133,30 @@ def plan_path(
     if best is None:
         return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses")
     return best
+
+
+def plan_until_verified(
+    *,
+    smooth_fn: Callable[[FloatArray], Smoothed],
+    settings: RefineSettings,
+    repairs: tuple[tuple[float, float], ...],
+    timer: Callable[[str], AbstractContextManager] = lambda stage: nullcontext(),
+    **problem,
+) -> tuple[PathPlan, Smoothed | None]:
+    """`plan_path`, re-optimised with wider margins (level, curvature factor) while the smoothed curve
+    fails verification; the plan and the last smoothed curve (None when there is no path).
+
+    `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
+    """
+    attempts = [settings] + [replace(settings, level=level, curvature_factor=factor) for level, factor in repairs]
+    smoothed: Smoothed | None = None
+    for attempt in attempts:
+        with timer("optimize"):
+            plan = plan_path(**problem, settings=attempt)
+        if plan.status != "ok":
+            return plan, None
+        with timer("smooth"):
+            smoothed = smooth_fn(plan.points)
+        if smoothed.verification.ok:
+            break
+    return plan, smoothed

@@ -13,7 +13,7 @@ repairs as `cvxnav plan`), so the smoother downstream is handed a path it can ac
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel
@@ -23,7 +23,7 @@ from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
 from schemas.scenario import Scenario
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
-from services.planner.core import PathPlan, intersected, plan_path
+from services.planner.core import PathPlan, intersected, plan_until_verified
 from services.planner.refine import RefineSettings
 from services.smoother.core import smooth
 
@@ -212,20 +212,12 @@ class PlannerStage:
     ) -> PathPlan:
         """plan_path from the robot, re-optimised with wider margins while its smoothed curve fails."""
         config = self.config
-        attempts = [config.refine] + [
-            replace(config.refine, level=level, curvature_factor=factor) for level, factor in config.repairs
-        ]
-        plan = None
-        for attempt in attempts:
-            plan = plan_path(start=position, heading_rad=heading_rad, goals=goals, ellipses=ellipses,
-                             bounds_min=config.bounds_min, bounds_max=config.bounds_max,
-                             max_curvature=config.max_curvature, settings=attempt)
-            if plan.status != "ok" or len(plan.points) < 4:
-                return plan
-            checked = smooth(plan.points, ellipses=ellipses, max_curvature=config.max_curvature,
-                             heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
-                             bounds_min=config.bounds_min, bounds_max=config.bounds_max)
-            if checked.verification.ok:
-                return plan
-        assert plan is not None
+        plan, _ = plan_until_verified(
+            start=position, heading_rad=heading_rad, goals=goals, ellipses=ellipses,
+            bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+            settings=config.refine, repairs=config.repairs,
+            smooth_fn=lambda points: smooth(points, ellipses=ellipses, max_curvature=config.max_curvature,
+                                            heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
+                                            bounds_min=config.bounds_min, bounds_max=config.bounds_max),
+        )
         return plan
