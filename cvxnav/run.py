@@ -263,17 +263,27 @@ class Supervisor:
 
     def stop(self) -> None:
         """SIGTERM every child, SIGKILL those still running after the grace period."""
+        killed = stop_processes([child.process for child in self.children], grace_s=self.options.stop_grace_s)
         for child in self.children:
-            if child.process.poll() is None:
-                child.process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.options.stop_grace_s
-        for child in self.children:
-            try:
-                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                logger.warning("stage %s ignored SIGTERM; killing it", child.name)
-                child.process.kill()
-                child.process.wait()
+            if child.process in killed:
+                logger.warning("stage %s ignored SIGTERM; it was killed", child.name)
+
+
+def stop_processes(processes: list[subprocess.Popen], *, grace_s: float) -> list[subprocess.Popen]:
+    """SIGTERM every running process, SIGKILL those still running after `grace_s`; the killed ones."""
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    killed = []
+    for process in processes:
+        try:
+            process.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+            killed.append(process)
+    return killed
 
 
 def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: float) -> None:

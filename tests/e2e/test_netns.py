@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from cvxnav.run import stop_processes
 from schemas.files import RunFile
 
 pytestmark = pytest.mark.slow
@@ -94,12 +94,4 @@ def test_run_across_namespaces_through_the_router(namespaces, tmp_path):
         run = RunFile.read(tmp_path / "run.json")
         assert run.status == "reached" and run.goals_reached == 2
     finally:
-        for process in processes:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-        for process in processes:
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop_processes(processes, grace_s=10.0)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -12,7 +11,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from cvxnav.run import free_ports
+from cvxnav.run import free_ports, stop_processes
 from cvxnav.status import alive_stages
 from cvxnav.zenoh_config import build_zenoh_config
 from schemas.files import RunFile
@@ -26,18 +25,6 @@ def _start(args: list[str], *, log: Path) -> subprocess.Popen:
     with open(log, "wb") as out:
         return subprocess.Popen([sys.executable, "-m", "cvxnav", *args], stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL)
-
-
-def _stop(processes: list[subprocess.Popen]) -> None:
-    for process in processes:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-    for process in processes:
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 def _open_when_up(endpoint: str, *, timeout_s: float = 30.0) -> zenoh.Session:
@@ -83,5 +70,5 @@ def test_run_through_the_router_with_status(tmp_path):
         run = RunFile.read(tmp_path / "run.json")
         assert run.status == "reached" and run.goals_reached == 2
     finally:
-        _stop(processes)
+        stop_processes(processes, grace_s=10.0)
     assert processes[0].returncode == 0  # the router stops cleanly on SIGTERM
