@@ -13,8 +13,14 @@ the classic law with |g|² replaced by |g|² − L²/4. On a circular path the c
 steady-state cross-track error: the lookahead point and the centre share the turning circle.
 
 Speed is the largest value from which the car can still slow down, at `max_decel_mps2`, to each path
-vertex's curvature limit sqrt(a_lat / κ) and to rest at the path end:
+vertex's limit v_j and to rest at the path end:
     v = min_j sqrt(v_j² + 2 a_dec (s_j − s)),  over vertices j ahead of the projection s.
+The limit v_j is the lower of two. Lateral acceleration: sqrt(a_lat / κ_j). Steering rate: over
+the window of `steering_window_m` of path ahead of vertex j the wheels must swing through the largest
+change Δδ_j of the steering angle that the path's curvature asks for, and they turn at δ̇_max at most,
+so v_j ≤ ρ·δ̇_max·window / Δδ_j. Without it the car reaches a bend whose curvature climbs to the bound
+faster than its wheels can follow and runs wide of it (0.4 m in a closed-loop run of field-15). The
+window lets the short wiggles of a refined path, which average out, pass at speed.
 """
 
 from __future__ import annotations
@@ -56,6 +62,37 @@ def menger_curvature(points: ArrayLike) -> FloatArray:
     return kappa
 
 
+def signed_curvature(points: ArrayLike, *, stride: int = 1) -> FloatArray:
+    """Curvature of the circle through each vertex and the vertices `stride` before and after it.
+
+    Signed: positive where the path turns left. A stride longer than one averages the curvature over
+    the arc between the three points; the first and last `stride` vertices take their nearest value.
+    """
+    z = np.asarray(points, dtype=float)
+    kappa = np.zeros(len(z))
+    h = max(1, int(stride))
+    if len(z) < 2 * h + 1:
+        return kappa
+    a, b, c = z[: -2 * h], z[h:-h], z[2 * h :]
+    ab, bc, ac = b - a, c - b, c - a
+    cross = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
+    lengths = np.linalg.norm(ab, axis=1) * np.linalg.norm(bc, axis=1) * np.linalg.norm(ac, axis=1)
+    kappa[h:-h] = np.where(lengths > 0.0, 2.0 * cross / np.where(lengths > 0.0, lengths, 1.0), 0.0)
+    kappa[:h], kappa[-h:] = kappa[h], kappa[-h - 1]
+    return kappa
+
+
+def steering_for_curvature(kappa: ArrayLike, *, wheelbase_m: float) -> FloatArray:
+    """Steering angle that drives the footprint centre (L/2 ahead of the rear axle) on curvature κ.
+
+    The centre turns on radius sqrt(R² + L²/4) when the rear axle turns on R = L / tan δ, so
+    tan δ = L κ / sqrt(1 − (L κ / 2)²); curvatures at or beyond 2/L (unreachable) map to ±π/2.
+    """
+    k = np.asarray(kappa, dtype=float)
+    half = np.clip(0.5 * wheelbase_m * np.abs(k), 0.0, 1.0)
+    return np.sign(k) * np.arctan2(wheelbase_m * np.abs(k), np.sqrt(1.0 - half**2))
+
+
 @dataclass(frozen=True)
 class PurePursuit:
     """Pure pursuit on the footprint centre with a speed profile; holds configuration only (no state).
@@ -68,8 +105,11 @@ class PurePursuit:
     wheelbase_m: float
     max_speed_mps: float
     max_steering_rad: float
+    max_steering_rate_radps: float
+    steering_rate_share: float = 0.8  # ρ: the share of the steering rate the speed profile may use
+    steering_window_m: float = 0.5
     lookahead_gain_s: float = 1.0
-    min_lookahead_m: float = 0.6
+    min_lookahead_m: float = 0.35
     max_lateral_accel_mps2: float = 0.5
     max_decel_mps2: float = 1.0
     stop_tolerance_m: float = 0.05
@@ -78,7 +118,8 @@ class PurePursuit:
     @classmethod
     def from_limits(cls, limits: VehicleLimits, **overrides: float) -> PurePursuit:
         return cls(wheelbase_m=limits.wheelbase_m, max_speed_mps=limits.max_speed_mps,
-                   max_steering_rad=limits.max_steering_rad, **overrides)
+                   max_steering_rad=limits.max_steering_rad,
+                   max_steering_rate_radps=limits.max_steering_rate_radps, **overrides)
 
     def command(self, state: VehicleState, *, path: ArrayLike, progress_m: float | None = None) -> Command:
         """Steering and speed targets to follow `path` ((n, 2), centre line) from `state`."""
@@ -108,7 +149,8 @@ class PurePursuit:
         cross_track = float(np.linalg.norm(foot[k] - centre))
         remaining = max(total - s_here, 0.0)
 
-        speed = self._speed(z=z, s_vertices=s_start, s_here=s_here, remaining_m=remaining)
+        speed = self._speed(z=z, s_vertices=s_start, seg_len=seg_len, s_here=s_here, remaining_m=remaining,
+                            steering_rad=state.steering_rad)
         lookahead = max(self.min_lookahead_m, self.lookahead_gain_s * state.speed_mps)
         goal = self._point_at(z=z, s_vertices=s_start, seg_len=seg_len, s_m=s_here + lookahead)
         steering = self._steer(state, goal=goal)
@@ -121,16 +163,37 @@ class PurePursuit:
         return Command(target_speed_mps=speed, target_steering_rad=steering, progress_m=s_here,
                        remaining_m=remaining, cross_track_m=cross_track)
 
-    def _speed(self, *, z: FloatArray, s_vertices: FloatArray, s_here: float, remaining_m: float) -> float:
+    def _speed(self, *, z: FloatArray, s_vertices: FloatArray, seg_len: FloatArray, s_here: float,
+               remaining_m: float, steering_rad: float) -> float:
         if remaining_m <= self.stop_tolerance_m:
             return 0.0
-        kappa = menger_curvature(z)
-        v_limit = np.sqrt(self.max_lateral_accel_mps2 / np.maximum(kappa, 1e-12))
+        spacing = float(np.median(seg_len)) if len(seg_len) else 0.0
+        stride = max(1, round(0.1 / spacing)) if spacing > 0.0 else 1  # curvature over ±0.1 m of path
+        kappa = signed_curvature(z, stride=stride)
+        steering = steering_for_curvature(kappa, wheelbase_m=self.wheelbase_m)
+        v_limit = np.sqrt(self.max_lateral_accel_mps2 / np.maximum(np.abs(kappa), 1e-12))
+        v_limit = np.minimum(v_limit, self._steering_rate_limit(steering, spacing_m=spacing))
+        # The wheels, from where they are now, must also reach what the path asks for just ahead
+        # (the car lags a fast curvature change): v ≤ ρ·δ̇_max·(distance + lookahead) / Δδ.
+        near = (s_vertices > s_here) & (s_vertices <= s_here + self.steering_window_m)
+        catch_up = (self.steering_rate_share * self.max_steering_rate_radps
+                    * (s_vertices[near] - s_here + self.min_lookahead_m)
+                    / np.maximum(np.abs(steering[near] - steering_rad), 1e-12))
+        v_now = float(catch_up.min()) if catch_up.size else np.inf
         v_limit = np.minimum(v_limit, self.max_speed_mps)
         v_limit[-1] = 0.0  # come to rest at the end
         ahead = s_vertices > s_here
         reachable = np.sqrt(v_limit[ahead] ** 2 + 2.0 * self.max_decel_mps2 * (s_vertices[ahead] - s_here))
-        return float(min(self.max_speed_mps, reachable.min() if reachable.size else 0.0))
+        return float(min(self.max_speed_mps, v_now, reachable.min() if reachable.size else 0.0))
+
+    def _steering_rate_limit(self, steering: FloatArray, *, spacing_m: float) -> FloatArray:
+        """Per vertex: the speed at which the wheels keep up with the path's steering over the window."""
+        window = max(1, round(self.steering_window_m / spacing_m)) if spacing_m > 0.0 else 1
+        swing = np.zeros(len(steering))
+        for m in range(1, min(window, len(steering) - 1) + 1):
+            change = np.abs(steering[m:] - steering[:-m])
+            swing[:-m] = np.maximum(swing[:-m], change)
+        return self.steering_rate_share * self.max_steering_rate_radps * window * spacing_m / np.maximum(swing, 1e-12)
 
     @staticmethod
     def _point_at(*, z: FloatArray, s_vertices: FloatArray, seg_len: FloatArray, s_m: float) -> FloatArray:
