@@ -372,6 +372,16 @@ class Scenario(_Frozen):
         return math.tan(self.robot.max_steering_angle) / self.robot.wheelbase
 
     @property
+    def centre_max_curvature(self) -> float:
+        """The tightest curvature the footprint centre can drive: 1 / sqrt(R² + (L/2)²), R = L / tan δ_max.
+
+        The centre sits L/2 ahead of the rear axle, so at full lock it turns on a wider circle than the
+        axle's minimum radius R; a centre line planned to `max_curvature` cannot be tracked exactly.
+        """
+        rear_radius = self.robot.wheelbase / math.tan(self.robot.max_steering_angle)
+        return 1.0 / math.hypot(rear_radius, self.robot.wheelbase / 2.0)
+
+    @property
     def goals_array(self) -> FloatArray:
         """Goals as an (m, 2) array, in visiting order."""
         return np.asarray(self.goals, dtype=float).reshape(-1, 2)

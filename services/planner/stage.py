@@ -39,12 +39,13 @@ class PlannerConfig:
     goal_tolerance_m: float
     bounds_min: FloatArray
     bounds_max: FloatArray
-    max_curvature: float
+    max_curvature: float  # the footprint centre's (Scenario.centre_max_curvature): the sim drives the centre
     inflation_m: float
     # A sensed obstacle's cover grows as more of its surface comes into view, so a plan that hugged
     # the old cover at the known-map margin (level 1.02) soon lies inside the new one, often where the
-    # car can no longer steer away. Online, plans keep a wider margin.
-    refine: RefineSettings = field(default_factory=lambda: RefineSettings(level=1.1))
+    # car can no longer steer away. Online, plans keep a wider margin; and they bend to 0.9 of the
+    # curvature bound, so the tracker has steering in reserve to correct an error on the tightest arc.
+    refine: RefineSettings = field(default_factory=lambda: RefineSettings(level=1.1, curvature_factor=0.9))
     repairs: tuple[tuple[float, float], ...] = ((1.15, 0.8), (1.2, 0.65))  # (level, curvature_factor)
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
 
@@ -55,7 +56,7 @@ class PlannerConfig:
             goal_tolerance_m=float(scenario.goal_tolerance),
             bounds_min=np.array(scenario.bounds.min, dtype=float),
             bounds_max=np.array(scenario.bounds.max, dtype=float),
-            max_curvature=scenario.max_curvature,
+            max_curvature=scenario.centre_max_curvature,
             inflation_m=scenario.inflation_m,
         )
 

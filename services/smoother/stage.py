@@ -34,7 +34,7 @@ class SmootherConfig:
     goal_tolerance_m: float
     bounds_min: FloatArray
     bounds_max: FloatArray
-    max_curvature: float
+    max_curvature: float  # the footprint centre's (Scenario.centre_max_curvature): the sim drives the centre
     output_spacing_m: float = 0.05  # CONTRACTS §4: the path is sampled at most 0.05 m apart
 
     @classmethod
@@ -44,7 +44,7 @@ class SmootherConfig:
             goal_tolerance_m=float(scenario.goal_tolerance),
             bounds_min=np.array(scenario.bounds.min, dtype=float),
             bounds_max=np.array(scenario.bounds.max, dtype=float),
-            max_curvature=scenario.max_curvature,
+            max_curvature=scenario.centre_max_curvature,
         )
 
 
