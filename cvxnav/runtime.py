@@ -9,7 +9,13 @@ the newest sample and the stale ones are dropped, so nothing queues without boun
 the stage publishes a ``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason
 for an input it could not use (oversize, bad JSON, wrong schema, non-finite number, validation
 failure, ``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing
-else, so the last good outputs stand.
+else, so the last good outputs stand. The status carries the rejected input's stamp
+(``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never as the
+verdict on a real scan.
+
+Bounds: a payload larger than ``max_payload_bytes`` (``cvxnav service --max-payload-bytes``, default
+1 MiB) is rejected before it is decoded; each core bounds what a decoded message may hold (points
+per scan, per cluster set, per path; ellipses per set; coordinates within the scenario's extent).
 """
 
 from __future__ import annotations
@@ -31,10 +37,17 @@ from schemas.wiring import STAGES, StageSpec, alive_key, key, model_for, status_
 logger = logging.getLogger(__name__)
 
 DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20
+MAX_REASON_CHARS = 300
 # How long the worker sleeps when no input is pending; bounds the added latency.
 IDLE_WAIT_S = 0.002
 
 Outputs = list[tuple[str, BaseModel]]
+
+
+def one_line(text: str) -> str:
+    """The first line of ``text``, at most ``MAX_REASON_CHARS`` long: a status reason."""
+    first = (text.splitlines() or [""])[0]
+    return first if len(first) <= MAX_REASON_CHARS else first[: MAX_REASON_CHARS - 1] + "…"
 
 
 class StageInputError(ValueError):
@@ -89,7 +102,8 @@ class _Shell:
         self._max_payload_bytes = max_payload_bytes
         self._clock = clock
         self._status_seq = 0
-        self._last_stamp_s = 0.0
+        self._last_stamp_s = 0.0  # of the last input the core accepted: the status's sim time
+        self._input_stamp_s: float | None = None  # of the input being handled, once decoded
 
     def handle(self, *, topic: str, sample: zenoh.Sample) -> None:
         """Decode and process one input sample, publish the outputs, report a status."""
@@ -104,18 +118,21 @@ class _Shell:
     def _step(self, step: Callable[[], Outputs], *, input_key: str | None, report_ok: bool = True) -> None:
         started = time.perf_counter()
         where = input_key or "tick"
+        self._input_stamp_s = None
         try:
             outputs = self._checked(step())
         except (DecodeError, StageInputError) as error:
-            self._report(input_key=input_key, started=started, reason=f"{where}: {error}")
+            self._report(input_key=input_key, started=started, reason=one_line(f"{where}: {error}"))
             return
         except Exception as error:  # a solver or core failure must not stop the stage
             logger.exception("stage %s failed on %s", self._spec.name, where)
-            reason = f"{where}: {type(error).__name__}: {error}".splitlines()[0]
-            self._report(input_key=input_key, started=started, reason=reason)
+            self._report(input_key=input_key, started=started,
+                         reason=one_line(f"{where}: {type(error).__name__}: {error}"))
             return
         for out_topic, message in outputs:
             self._publishers[out_topic].put(message.model_dump_json())
+        if self._input_stamp_s is not None:
+            self._last_stamp_s = self._input_stamp_s
         if report_ok:
             self._report(input_key=input_key, started=started, reason=None)
 
@@ -126,7 +143,7 @@ class _Shell:
         message = decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
         header = getattr(message, "header", None)
         if isinstance(header, Header):
-            self._last_stamp_s = header.stamp_s
+            self._input_stamp_s = header.stamp_s
         return self._core.process(topic=topic, message=message, now_s=self._clock())
 
     def _checked(self, outputs: Outputs) -> Outputs:
@@ -140,12 +157,14 @@ class _Shell:
         return outputs
 
     def _report(self, *, input_key: str | None, started: float, reason: str | None) -> None:
+        stamp_s = self._last_stamp_s if self._input_stamp_s is None else self._input_stamp_s
         status = StageStatus(
-            header=Header(stamp_s=self._last_stamp_s, seq=self._status_seq),
+            header=Header(stamp_s=stamp_s, seq=self._status_seq),
             stage=self._spec.name,
             state="ok" if reason is None else "error",
             reason=reason or "",
             input_key=input_key,
+            input_stamp_s=self._input_stamp_s,
             processing_ms=(time.perf_counter() - started) * 1e3,
         )
         self._status_seq += 1
