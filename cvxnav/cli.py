@@ -65,6 +65,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.run import RunError, serve
+    from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES
     from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
 
@@ -76,7 +77,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
-                     sim_options=sim_options)
+                     sim_options=sim_options,
+                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
     except RunError as error:
         raise CliError(str(error)) from None
 
@@ -254,6 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
     service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                          help="an alternative implementation: a factory taking the scenario")
+    service.add_argument("--max-payload-bytes", type=_positive_int, default=None, metavar="N",
+                         help="reject (and report) an input message larger than N bytes (default 1 MiB)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")

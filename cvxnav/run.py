@@ -33,7 +33,7 @@ from typing import Any
 
 import zenoh
 
-from cvxnav.runtime import StageCore, install_signal_handlers, run_stage
+from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageCore, install_signal_handlers, run_stage
 from cvxnav.zenoh_config import build_zenoh_config
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
@@ -128,8 +128,12 @@ def serve(
     prefix: str,
     entry_point: str | None = None,
     sim_options: Mapping[str, Any] | None = None,
+    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
 ) -> int:
-    """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code."""
+    """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
+
+    An input payload larger than `max_payload_bytes` is rejected before it is decoded.
+    """
     stop = threading.Event()
     install_signal_handlers(stop)
     if name == "sim":
@@ -137,13 +141,15 @@ def serve(
 
         options = dict(sim_options or {})
         out_path = options.pop("out_path", None)
-        result = run_sim(scenario=scenario, config=SimConfig(**options), session_config=session_config,
+        result = run_sim(scenario=scenario, config=SimConfig(**options, max_payload_bytes=max_payload_bytes),
+                         session_config=session_config,
                          prefix=prefix, stop_event=stop, out_path=out_path)
         return EXIT_BY_STATUS[result.status]
     if name not in STAGES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(STAGES)}")
     core = load_factory(entry_point or DEFAULT_FACTORIES[name])(scenario)
-    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop)
+    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
+              max_payload_bytes=max_payload_bytes)
     return 0
 
 
