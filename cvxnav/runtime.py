@@ -4,8 +4,10 @@ A stage's core is plain code: ``process(topic=, message=, now_s=)`` returns the 
 by topic. ``run_stage`` does all the I/O. Which keys a stage reads and writes comes from the wiring
 table (``schemas.wiring.STAGES``), never from the core.
 
-Each input is received through ``zenoh.handlers.RingChannel(1)``: a stage that falls behind works on
-the newest sample and the stale ones are dropped, so nothing queues without bound. After every input
+Each input is received through a small ``zenoh.handlers.RingChannel`` (``INPUT_RING``): a stage that
+falls behind works on the newest sample that decodes, and the stale ones are dropped, so nothing
+queues without bound. Samples newer than that one which do not decode are reported, never processed:
+garbage on a key cannot push a real message out unless it outnumbers the ring. After every input
 the stage publishes a ``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason
 for an input it could not use (oversize, bad JSON, wrong schema, non-finite number, validation
 failure, ``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing
@@ -40,6 +42,8 @@ DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20
 MAX_REASON_CHARS = 300
 # How long the worker sleeps when no input is pending; bounds the added latency.
 IDLE_WAIT_S = 0.002
+# Samples held per input key: the newest decodable one among them is processed, older ones dropped.
+INPUT_RING = 8
 
 Outputs = list[tuple[str, BaseModel]]
 
@@ -105,20 +109,32 @@ class _Shell:
         self._last_stamp_s = 0.0  # of the last input the core accepted: the status's sim time
         self._input_stamp_s: float | None = None  # of the input being handled, once decoded
 
-    def handle(self, *, topic: str, sample: zenoh.Sample) -> None:
-        """Decode and process one input sample, publish the outputs, report a status."""
-        input_key = str(sample.key_expr)
-        self._step(lambda: self._process(topic=topic, sample=sample), input_key=input_key)
+    def handle_newest(self, *, topic: str, samples: list[zenoh.Sample]) -> None:
+        """Of samples in arrival order, process the newest that decodes; report each newer one that does not.
+
+        Older samples are superseded and dropped undecoded, as the ring drops them.
+        """
+        for sample in reversed(samples):
+            input_key = str(sample.key_expr)
+            started = time.perf_counter()
+            self._input_stamp_s = None
+            try:
+                message = self._decoded(topic=topic, sample=sample)
+            except DecodeError as error:
+                self._report(input_key=input_key, started=started, reason=one_line(f"{input_key}: {error}"))
+                continue
+            self._step(lambda: self._process(topic=topic, message=message), input_key=input_key)
+            return
 
     def tick(self) -> None:
         """One timer step; reports a status only when it fails (a tick has no input to judge)."""
         core: TickingCore = self._core  # type: ignore[assignment]  # run_stage's contract
+        self._input_stamp_s = None
         self._step(lambda: core.tick(now_s=self._clock()), input_key=None, report_ok=False)
 
     def _step(self, step: Callable[[], Outputs], *, input_key: str | None, report_ok: bool = True) -> None:
         started = time.perf_counter()
         where = input_key or "tick"
-        self._input_stamp_s = None
         try:
             outputs = self._checked(step())
         except (DecodeError, StageInputError) as error:
@@ -136,11 +152,13 @@ class _Shell:
         if report_ok:
             self._report(input_key=input_key, started=started, reason=None)
 
-    def _process(self, *, topic: str, sample: zenoh.Sample) -> Outputs:
+    def _decoded(self, *, topic: str, sample: zenoh.Sample) -> BaseModel:
         size = len(sample.payload)
         if size > self._max_payload_bytes:
             raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self._max_payload_bytes}")
-        message = decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+        return decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+
+    def _process(self, *, topic: str, message: BaseModel) -> Outputs:
         header = getattr(message, "header", None)
         if isinstance(header, Header):
             self._input_stamp_s = header.stamp_s
@@ -204,7 +222,7 @@ def run_stage(
             session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
         )
         subscribers = {
-            topic: declare(session.declare_subscriber(key(prefix, topic), zenoh.handlers.RingChannel(1)))
+            topic: declare(session.declare_subscriber(key(prefix, topic), zenoh.handlers.RingChannel(INPUT_RING)))
             for topic in spec.subscribes
         }
         declare(session.liveliness().declare_token(alive_key(prefix, stage)))
@@ -226,11 +244,10 @@ def run_stage(
                 next_tick_s = max(next_tick_s + tick_period_s, time.monotonic())
             idle = True
             for topic, subscriber in subscribers.items():
-                sample = subscriber.try_recv()
-                if sample is None or sample.kind != zenoh.SampleKind.PUT:
-                    continue
-                idle = False
-                shell.handle(topic=topic, sample=sample)
+                samples = [s for s in iter(subscriber.try_recv, None) if s.kind == zenoh.SampleKind.PUT]
+                if samples:
+                    idle = False
+                    shell.handle_newest(topic=topic, samples=samples)
             if idle:
                 stop_event.wait(IDLE_WAIT_S)
     logger.info("stage %s stopped", stage)

@@ -385,3 +385,26 @@ def test_service_process_stops_cleanly_on_signal(signum):
             if process.poll() is None:
                 process.kill()
                 process.wait()
+
+
+def test_garbage_after_a_good_scan_is_reported_and_does_not_displace_it():
+    """A burst of undecodable payloads behind a good scan: each is reported, the good scan still answered."""
+    with running_stage(DoublingSensing(delay_s=0.3)) as harness:
+        harness.drain()
+        harness.put_scan(make_scan(seq=5000))  # the stage is busy with this one for 0.3 s ...
+        time.sleep(0.05)
+        seq = harness.good_seq()
+        harness.put_scan(make_scan(seq=seq))  # ... while this one and three bad payloads queue up
+        for _ in range(3):
+            harness.put_raw(b"{not json", encoding=Scan.encoding())
+        wait_for(harness.clusters, clusters_for(seq))
+        errors = 0
+        deadline = time.monotonic() + WAIT_S
+        while errors < 3 and time.monotonic() < deadline:
+            sample = harness.statuses.try_recv()
+            if sample is None:
+                time.sleep(0.01)
+            elif status(sample).state == "error":
+                errors += 1
+                assert "invalid JSON" in status(sample).reason and status(sample).input_stamp_s is None
+        assert errors == 3
