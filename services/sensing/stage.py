@@ -3,7 +3,8 @@
 Every scan's hits go into a `PointMemory` (obstacles behind the 180° sensor stay known), and all the
 remembered points are clustered anew by single linkage. Each cluster's points are sorted, and the
 clusters ordered by their first point, so the same memory always yields the same message: the next
-stage can then recognise an unchanged cluster by its content and skip refitting it.
+stage can then recognise an unchanged cluster by its content and skip refitting it. A scan that
+occupies no new voxel leaves the memory's point set, and so its clusters, as they were: they are reused.
 
 A scan is checked before it is remembered (``services.limits``): at most one hit per ray, the pose
 inside the map, every hit within the sensor's range of it (10 % slack for range noise). Anything
@@ -52,6 +53,8 @@ class SensingStage:
     def __init__(self, *, config: SensingConfig) -> None:
         self.config = config
         self.memory = PointMemory(voxel_m=config.voxel_m, max_points=config.max_points)
+        # Reused while a scan adds no voxel (a still robot, a re-sent scan): the clusters cannot change.
+        self._clusters: list[ClusterMsg] | None = None
         self._seq = 0
 
     @classmethod
@@ -63,22 +66,25 @@ class SensingStage:
             raise StageInputError(f"sensing does not handle {topic!r}")
         if message.header.frame_id != "map":
             raise StageInputError(f"scan points must be in the map frame, got frame_id={message.header.frame_id!r}")
-        self.memory.add(self._checked_hits(message))
+        if self.memory.add(self._checked_hits(message)) or self._clusters is None:
+            self._clusters = self._clustered()
+        out = Clusters(
+            header=answer_header(scan_header=message.header, seq=self._seq),
+            scan_seq=message.header.seq,
+            clusters=self._clusters,
+        )
+        self._seq += 1
+        return [("clusters", out)]
+
+    def _clustered(self) -> list[ClusterMsg]:
+        """The memory's clusters, in canonical order (independent of the order points were remembered)."""
         clusters = []
         for points in cluster_points(self.memory.points(), link_m=self.config.link_m):
             ordered = points[np.lexsort((points[:, 1], points[:, 0]))]
             clusters.append(ordered)
         clusters.sort(key=lambda c: (c[0, 0], c[0, 1]))
-        out = Clusters(
-            header=answer_header(scan_header=message.header, seq=self._seq),
-            scan_seq=message.header.seq,
-            clusters=[
-                ClusterMsg(cluster_id=index, points=[(float(x), float(y)) for x, y in points], solid=False)
-                for index, points in enumerate(clusters)
-            ],
-        )
-        self._seq += 1
-        return [("clusters", out)]
+        return [ClusterMsg(cluster_id=index, points=[(float(x), float(y)) for x, y in points], solid=False)
+                for index, points in enumerate(clusters)]
 
     def _checked_hits(self, scan: Scan) -> np.ndarray:
         config = self.config
