@@ -327,6 +327,7 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
         with zenoh.open(config) as session:
             if recorder is not None:
                 recorder.subscribe(session)  # before any stage starts: the recording misses nothing
+
             def on_state(sample: zenoh.Sample) -> None:
                 try:
                     state = decode(RobotState, sample.payload.to_bytes())

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from schemas.files import LatencyStats, RunFile
 from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, one_line
+from schemas.files import LatencyStats, RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, SmoothPath, StageStatus, decode
 from schemas.messages import World as WorldMessage
 from schemas.scenario import Scenario
