@@ -11,6 +11,7 @@ EXIT_OK = 0
 EXIT_BAD_INPUT = 2
 EXIT_NO_PATH = 3
 EXIT_TIMEOUT_OR_COLLISION = 4
+EXIT_DIFFERS = 1  # cvxnav replay: the outputs did not reproduce
 
 
 class CliError(Exception):
@@ -65,6 +66,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.run import RunError, serve
+    from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES
     from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
 
@@ -76,7 +78,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
-                     sim_options=sim_options)
+                     sim_options=sim_options,
+                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
     except RunError as error:
         raise CliError(str(error)) from None
 
@@ -94,7 +97,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
                          time_limit_s=args.timeout_s, stages=stages, robot_id=args.robot_id,
                          noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
-                         monitor_args=_monitor_args(args))
+                         monitor_args=_monitor_args(args), listen=tuple(args.listen),
+                         record_messages=args.record_messages)
     started = time.monotonic()
     try:
         code, result = run_pipeline(options=options, scenario=scenario)
@@ -116,6 +120,22 @@ def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
         return None
     record = args.record.resolve() if args.record is not None else None
     return tuple(monitor_arguments(record=record, viewer=args.viewer, viewer_url=args.viewer_url))
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from cvxnav.record import RecordingError, read_recording
+    from cvxnav.replay import replay_stage
+    from cvxnav.run import RunError, load_factory
+
+    try:
+        recording = read_recording(args.file)
+        if args.entry is not None:
+            load_factory(args.entry)
+    except (RecordingError, RunError) as error:
+        raise CliError(str(error)) from None
+    report = replay_stage(recording, stage=args.stage, entry_point=args.entry, rtol=args.rtol, atol=args.atol)
+    print(report.summary())
+    return EXIT_OK if report.reproduced else EXIT_DIFFERS
 
 
 def _positive_float(text: str) -> float:
@@ -245,6 +265,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--connect", dest="viewer_url", default=None, metavar="URL",
                      help="start the monitor stage and stream to a rerun viewer at URL "
                           "(e.g. rerun+http://127.0.0.1:9876/proxy)")
+    run.add_argument("--record-messages", type=Path, default=None, metavar="FILE.mcap",
+                     help="record every message of the run (key, encoding, payload, receive time) as MCAP")
+    run.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                     help="let outside processes join the run's Zenoh mesh here, e.g. tcp/127.0.0.1:7447 "
+                          "(repeatable)")
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")
@@ -254,6 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
     service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                          help="an alternative implementation: a factory taking the scenario")
+    service.add_argument("--max-payload-bytes", type=_positive_int, default=None, metavar="N",
+                         help="reject (and report) an input message larger than N bytes (default 1 MiB)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")
@@ -296,6 +323,16 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--width-px", type=_positive_int, default=1200, help="image width in pixels")
     plot.add_argument("--height-px", type=_positive_int, default=900, help="image height in pixels")
     plot.set_defaults(handler=_cmd_plot)
+
+    replay = commands.add_parser("replay", help="re-run one stage on a message recording; compare its outputs")
+    replay.add_argument("file", type=Path, help="an MCAP file from `cvxnav run --record-messages`")
+    replay.add_argument("--stage", required=True, choices=[name for name in STAGES if name != "sim"],
+                        help="the stage whose recorded inputs are replayed")
+    replay.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
+                        help="an alternative implementation: a factory taking the scenario")
+    replay.add_argument("--rtol", type=_positive_float, default=1e-6, help="relative tolerance on numbers")
+    replay.add_argument("--atol", type=_positive_float, default=1e-9, help="absolute tolerance on numbers")
+    replay.set_defaults(handler=_cmd_replay)
 
     schemas = commands.add_parser("schemas", help="write every message model as JSON Schema")
     schemas.add_argument("--out", type=Path, default=Path("schemas-json"), help="directory to write")

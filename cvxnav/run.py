@@ -12,6 +12,11 @@ A stage is swapped by naming, in a JSON `stages` file, either a Python entry poi
 `"module:factory"` (called with the scenario, returning a StageCore), or
 `{"command": ["prog", "arg", ...]}`: any process that speaks the stage's keys. Its arguments may use
 `{listen}`, `{connect}` (comma-separated endpoints), `{prefix}` and `{scenario}` (a file path).
+
+The supervisor's own session is a peer of every stage. `--listen EP` makes it listen on EP as well,
+so an outside process (`cvxnav status --connect EP`, a test, a recorder elsewhere) can join the run's
+mesh; multicast stays off, Zenoh's gossip tells the newcomer where the stages are.
+`--record-messages FILE` has that session record every message under the prefix (`cvxnav.record`).
 """
 
 from __future__ import annotations
@@ -33,7 +38,8 @@ from typing import Any
 
 import zenoh
 
-from cvxnav.runtime import StageCore, install_signal_handlers, run_stage
+from cvxnav.record import MessageRecorder
+from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageCore, install_signal_handlers, run_stage
 from cvxnav.zenoh_config import build_zenoh_config
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
@@ -128,8 +134,12 @@ def serve(
     prefix: str,
     entry_point: str | None = None,
     sim_options: Mapping[str, Any] | None = None,
+    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
 ) -> int:
-    """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code."""
+    """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
+
+    An input payload larger than `max_payload_bytes` is rejected before it is decoded.
+    """
     stop = threading.Event()
     install_signal_handlers(stop)
     if name == "sim":
@@ -137,13 +147,15 @@ def serve(
 
         options = dict(sim_options or {})
         out_path = options.pop("out_path", None)
-        result = run_sim(scenario=scenario, config=SimConfig(**options), session_config=session_config,
+        result = run_sim(scenario=scenario, config=SimConfig(**options, max_payload_bytes=max_payload_bytes),
+                         session_config=session_config,
                          prefix=prefix, stop_event=stop, out_path=out_path)
         return EXIT_BY_STATUS[result.status]
     if name not in STAGES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(STAGES)}")
     core = load_factory(entry_point or DEFAULT_FACTORIES[name])(scenario)
-    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop)
+    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
+              max_payload_bytes=max_payload_bytes)
     return 0
 
 
@@ -190,6 +202,8 @@ class RunOptions:
     stop_grace_s: float = 5.0
     show_progress: bool = True
     monitor_args: tuple[str, ...] | None = None  # start the rerun monitor with these service options
+    listen: tuple[str, ...] = ()  # extra endpoints the supervisor's session listens on
+    record_messages: Path | None = None  # MCAP file of every message under the prefix
 
 
 @dataclass
@@ -305,10 +319,15 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     supervisor = Supervisor(options=options, scenario=scenario)
     progress = _Progress()
     time_limit_s = options.time_limit_s or default_time_limit_s(scenario)
-    config = build_zenoh_config(listen=[supervisor.own_endpoint],
+    config = build_zenoh_config(listen=[supervisor.own_endpoint, *options.listen],
                                 connect=[ep for ep in supervisor.endpoints.values()])
+    recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
+                if options.record_messages is not None else None)
     try:
         with zenoh.open(config) as session:
+            if recorder is not None:
+                recorder.subscribe(session)  # before any stage starts: the recording misses nothing
+
             def on_state(sample: zenoh.Sample) -> None:
                 try:
                     state = decode(RobotState, sample.payload.to_bytes())
@@ -337,6 +356,8 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
             path_sub.undeclare()
     finally:
         supervisor.stop()
+        if recorder is not None:
+            recorder.close()
     if code is None:
         return EXIT_BY_STATUS["timeout"], None
     try:

@@ -4,12 +4,20 @@ A stage's core is plain code: ``process(topic=, message=, now_s=)`` returns the 
 by topic. ``run_stage`` does all the I/O. Which keys a stage reads and writes comes from the wiring
 table (``schemas.wiring.STAGES``), never from the core.
 
-Each input is received through ``zenoh.handlers.RingChannel(1)``: a stage that falls behind works on
-the newest sample and the stale ones are dropped, so nothing queues without bound. After every input
+Each input is received through a small ``zenoh.handlers.RingChannel`` (``INPUT_RING``): a stage that
+falls behind works on the newest sample that decodes, and the stale ones are dropped, so nothing
+queues without bound. Samples newer than that one which do not decode are reported, never processed:
+garbage on a key cannot push a real message out unless it outnumbers the ring. After every input
 the stage publishes a ``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason
 for an input it could not use (oversize, bad JSON, wrong schema, non-finite number, validation
 failure, ``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing
-else, so the last good outputs stand.
+else, so the last good outputs stand. The status carries the rejected input's stamp
+(``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never as the
+verdict on a real scan.
+
+Bounds: a payload larger than ``max_payload_bytes`` (``cvxnav service --max-payload-bytes``, default
+1 MiB) is rejected before it is decoded; each core bounds what a decoded message may hold (points
+per scan, per cluster set, per path; ellipses per set; coordinates within the scenario's extent).
 """
 
 from __future__ import annotations
@@ -31,10 +39,19 @@ from schemas.wiring import STAGES, StageSpec, alive_key, key, model_for, status_
 logger = logging.getLogger(__name__)
 
 DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20
+MAX_REASON_CHARS = 300
 # How long the worker sleeps when no input is pending; bounds the added latency.
 IDLE_WAIT_S = 0.002
+# Samples held per input key: the newest decodable one among them is processed, older ones dropped.
+INPUT_RING = 8
 
 Outputs = list[tuple[str, BaseModel]]
+
+
+def one_line(text: str) -> str:
+    """The first line of ``text``, at most ``MAX_REASON_CHARS`` long: a status reason."""
+    first = (text.splitlines() or [""])[0]
+    return first if len(first) <= MAX_REASON_CHARS else first[: MAX_REASON_CHARS - 1] + "…"
 
 
 class StageInputError(ValueError):
@@ -89,16 +106,30 @@ class _Shell:
         self._max_payload_bytes = max_payload_bytes
         self._clock = clock
         self._status_seq = 0
-        self._last_stamp_s = 0.0
+        self._last_stamp_s = 0.0  # of the last input the core accepted: the status's sim time
+        self._input_stamp_s: float | None = None  # of the input being handled, once decoded
 
-    def handle(self, *, topic: str, sample: zenoh.Sample) -> None:
-        """Decode and process one input sample, publish the outputs, report a status."""
-        input_key = str(sample.key_expr)
-        self._step(lambda: self._process(topic=topic, sample=sample), input_key=input_key)
+    def handle_newest(self, *, topic: str, samples: list[zenoh.Sample]) -> None:
+        """Of samples in arrival order, process the newest that decodes; report each newer one that does not.
+
+        Older samples are superseded and dropped undecoded, as the ring drops them.
+        """
+        for sample in reversed(samples):
+            input_key = str(sample.key_expr)
+            started = time.perf_counter()
+            self._input_stamp_s = None
+            try:
+                message = self._decoded(topic=topic, sample=sample)
+            except DecodeError as error:
+                self._report(input_key=input_key, started=started, reason=one_line(f"{input_key}: {error}"))
+                continue
+            self._step(lambda: self._process(topic=topic, message=message), input_key=input_key)
+            return
 
     def tick(self) -> None:
         """One timer step; reports a status only when it fails (a tick has no input to judge)."""
         core: TickingCore = self._core  # type: ignore[assignment]  # run_stage's contract
+        self._input_stamp_s = None
         self._step(lambda: core.tick(now_s=self._clock()), input_key=None, report_ok=False)
 
     def _step(self, step: Callable[[], Outputs], *, input_key: str | None, report_ok: bool = True) -> None:
@@ -107,26 +138,30 @@ class _Shell:
         try:
             outputs = self._checked(step())
         except (DecodeError, StageInputError) as error:
-            self._report(input_key=input_key, started=started, reason=f"{where}: {error}")
+            self._report(input_key=input_key, started=started, reason=one_line(f"{where}: {error}"))
             return
         except Exception as error:  # a solver or core failure must not stop the stage
             logger.exception("stage %s failed on %s", self._spec.name, where)
-            reason = f"{where}: {type(error).__name__}: {error}".splitlines()[0]
-            self._report(input_key=input_key, started=started, reason=reason)
+            self._report(input_key=input_key, started=started,
+                         reason=one_line(f"{where}: {type(error).__name__}: {error}"))
             return
         for out_topic, message in outputs:
             self._publishers[out_topic].put(message.model_dump_json())
+        if self._input_stamp_s is not None:
+            self._last_stamp_s = self._input_stamp_s
         if report_ok:
             self._report(input_key=input_key, started=started, reason=None)
 
-    def _process(self, *, topic: str, sample: zenoh.Sample) -> Outputs:
+    def _decoded(self, *, topic: str, sample: zenoh.Sample) -> BaseModel:
         size = len(sample.payload)
         if size > self._max_payload_bytes:
             raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self._max_payload_bytes}")
-        message = decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+        return decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+
+    def _process(self, *, topic: str, message: BaseModel) -> Outputs:
         header = getattr(message, "header", None)
         if isinstance(header, Header):
-            self._last_stamp_s = header.stamp_s
+            self._input_stamp_s = header.stamp_s
         return self._core.process(topic=topic, message=message, now_s=self._clock())
 
     def _checked(self, outputs: Outputs) -> Outputs:
@@ -140,12 +175,14 @@ class _Shell:
         return outputs
 
     def _report(self, *, input_key: str | None, started: float, reason: str | None) -> None:
+        stamp_s = self._last_stamp_s if self._input_stamp_s is None else self._input_stamp_s
         status = StageStatus(
-            header=Header(stamp_s=self._last_stamp_s, seq=self._status_seq),
+            header=Header(stamp_s=stamp_s, seq=self._status_seq),
             stage=self._spec.name,
             state="ok" if reason is None else "error",
             reason=reason or "",
             input_key=input_key,
+            input_stamp_s=self._input_stamp_s,
             processing_ms=(time.perf_counter() - started) * 1e3,
         )
         self._status_seq += 1
@@ -185,7 +222,7 @@ def run_stage(
             session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
         )
         subscribers = {
-            topic: declare(session.declare_subscriber(key(prefix, topic), zenoh.handlers.RingChannel(1)))
+            topic: declare(session.declare_subscriber(key(prefix, topic), zenoh.handlers.RingChannel(INPUT_RING)))
             for topic in spec.subscribes
         }
         declare(session.liveliness().declare_token(alive_key(prefix, stage)))
@@ -207,11 +244,10 @@ def run_stage(
                 next_tick_s = max(next_tick_s + tick_period_s, time.monotonic())
             idle = True
             for topic, subscriber in subscribers.items():
-                sample = subscriber.try_recv()
-                if sample is None or sample.kind != zenoh.SampleKind.PUT:
-                    continue
-                idle = False
-                shell.handle(topic=topic, sample=sample)
+                samples = [s for s in iter(subscriber.try_recv, None) if s.kind == zenoh.SampleKind.PUT]
+                if samples:
+                    idle = False
+                    shell.handle_newest(topic=topic, samples=samples)
             if idle:
                 stop_event.wait(IDLE_WAIT_S)
     logger.info("stage %s stopped", stage)

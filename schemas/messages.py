@@ -168,16 +168,22 @@ class RobotState(Message):
 
 
 class StageStatus(Message):
-    """Published by every stage after each input: ``error`` names what was rejected and why."""
+    """Published by every stage after each input: ``error`` names what was rejected and why.
+
+    ``input_stamp_s`` is the stamp of the input this status judges, ``None`` when there is none (a
+    timer tick) or it could not be decoded: a consumer that waits for the verdict on one scan (the
+    sim) matches on it, so garbage published on a key is never taken for a verdict on a real scan.
+    """
 
     SCHEMA: ClassVar[str] = "cvxnav.StageStatus"
-    VERSION: ClassVar[int] = 1
+    VERSION: ClassVar[int] = 2  # 2: input_stamp_s
 
     header: Header
     stage: str
     state: Literal["ok", "error"]
     reason: str = ""
     input_key: str | None = None
+    input_stamp_s: float | None = None
     processing_ms: float = Field(ge=0.0)
 
 
@@ -228,9 +234,13 @@ class DecodeError(ValueError):
     """A payload that is not a valid message of the expected schema; the text is one line."""
 
 
-def _schema_suffix(encoding: str) -> str | None:
-    _, sep, schema = encoding.partition(";")
-    return schema if sep else None
+# The encodings a payload may carry: JSON, or Zenoh's default (a sender that named none).
+_ACCEPTED_MIME = ("application/json", "zenoh/bytes")
+
+
+def _split_encoding(encoding: str) -> tuple[str, str | None]:
+    mime, sep, schema = encoding.partition(";")
+    return mime, (schema if sep else None)
 
 
 def _one_line(error: ValidationError) -> str:
@@ -247,11 +257,14 @@ def decode(model_cls: type[M], payload: bytes, *, encoding: str | None = None) -
     """Validate ``payload`` as ``model_cls``; raise ``DecodeError`` with a one-line reason.
 
     When the sender's Zenoh ``encoding`` names a cvxnav schema, it must be this model's schema and
-    version; a payload without a schema suffix is judged by its content alone.
+    version; a payload without a schema suffix is judged by its content alone. An encoding other
+    than JSON (or Zenoh's default, which a sender that names none gets) is rejected.
     """
-    schema = _schema_suffix(encoding) if encoding else None
+    mime, schema = _split_encoding(encoding) if encoding else (None, None)
+    if mime is not None and mime not in _ACCEPTED_MIME:
+        raise DecodeError(f"wrong encoding: expected application/json;{model_cls.schema_id()}, got {encoding[:80]}")
     if schema is not None and schema.startswith("cvxnav.") and schema != model_cls.schema_id():
-        raise DecodeError(f"wrong schema: expected {model_cls.schema_id()}, got {schema}")
+        raise DecodeError(f"wrong schema: expected {model_cls.schema_id()}, got {schema[:80]}")
     try:
         return model_cls.model_validate_json(payload)
     except ValidationError as error:

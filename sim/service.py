@@ -14,6 +14,8 @@ answers and integrates the car. `run_sim` is the Zenoh shell around it, in one o
   used whenever it arrives, as on a real robot.
 
 Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
+A smooth_path it cannot use (oversize, undecodable, or answering a scan it never sent) is ignored and
+reported on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, one_line
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, SmoothPath, StageStatus, decode
 from schemas.messages import World as WorldMessage
@@ -62,6 +65,7 @@ class SimConfig:
     seed: int = 0
     answer_timeout_s: float = 10.0  # lockstep: wall time to wait for the answer to a scan
     realtime: bool = False
+    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES  # a larger smooth_path is rejected undecoded
 
 
 @dataclass
@@ -211,19 +215,22 @@ class _Answers:
 
     paths: zenoh.Subscriber
     statuses: zenoh.Subscriber
+    status_pub: zenoh.Publisher
+    max_payload_bytes: int
     published_at: dict[int, float] = field(default_factory=dict)  # scan seq -> perf_counter
     stamps: dict[int, float] = field(default_factory=dict)  # scan seq -> sim stamp
     latencies_ms: list[float] = field(default_factory=list)
     rejected: dict[float, str] = field(default_factory=dict)  # scan stamp -> reason
+    status_seq: int = 0
 
     def newest_path(self) -> SmoothPath | None:
-        """Drain the path queue; record latencies; the newest decodable path (None if none came)."""
+        """Drain the path queue; record latencies; the newest usable path (None if none came)."""
         newest = None
         while (sample := self.paths.try_recv()) is not None:
             try:
-                answer = decode(SmoothPath, sample.payload.to_bytes(), encoding=str(sample.encoding))
+                answer = self._decoded(sample)
             except DecodeError as error:
-                logger.warning("ignoring smooth_path: %s", error)
+                self._report(str(sample.key_expr), one_line(f"{sample.key_expr}: {error}"))
                 continue
             sent = self.published_at.pop(answer.scan_seq, None)
             if sent is not None:
@@ -232,14 +239,31 @@ class _Answers:
                 newest = answer
         return newest
 
+    def _decoded(self, sample: zenoh.Sample) -> SmoothPath:
+        size = len(sample.payload)
+        if size > self.max_payload_bytes:
+            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self.max_payload_bytes}")
+        answer = decode(SmoothPath, sample.payload.to_bytes(), encoding=str(sample.encoding))
+        if answer.scan_seq not in self.stamps:
+            raise DecodeError(f"answers scan {answer.scan_seq}, which the sim never sent")
+        return answer
+
+    def _report(self, input_key: str, reason: str) -> None:
+        logger.warning("ignoring %s", reason)
+        stamp_s = max(self.stamps.values(), default=0.0)
+        status = StageStatus(header=Header(stamp_s=stamp_s, seq=self.status_seq), stage="sim", state="error",
+                             reason=reason, input_key=input_key, processing_ms=0.0)
+        self.status_seq += 1
+        self.status_pub.put(status.model_dump_json())
+
     def drain_statuses(self) -> None:
         while (sample := self.statuses.try_recv()) is not None:
             try:
                 status = decode(StageStatus, sample.payload.to_bytes(), encoding=str(sample.encoding))
             except DecodeError:
                 continue
-            if status.state == "error" and status.stage != "sim":
-                self.rejected[status.header.stamp_s] = f"{status.stage}: {status.reason}"
+            if status.state == "error" and status.stage != "sim" and status.input_stamp_s is not None:
+                self.rejected[status.input_stamp_s] = f"{status.stage}: {status.reason}"
 
 
 def wait_for_stages(session: zenoh.Session, *, prefix: str, stages: tuple[str, ...], timeout_s: float,
@@ -285,7 +309,10 @@ def run_sim(
                                               encoding=zenoh.Encoding(RobotState.encoding()),
                                               congestion_control=block)
         answers = _Answers(paths=session.declare_subscriber(key(prefix, "smooth_path")),
-                           statuses=session.declare_subscriber(status_key(prefix, "*")))
+                           statuses=session.declare_subscriber(status_key(prefix, "*")),
+                           status_pub=session.declare_publisher(status_key(prefix, "sim"),
+                                                                encoding=zenoh.Encoding(StageStatus.encoding())),
+                           max_payload_bytes=config.max_payload_bytes)
         token = session.liveliness().declare_token(alive_key(prefix, "sim"))
         world_queryable = _publish_world(session, scenario=scenario, prefix=prefix)
         missing = wait_for_stages(session, prefix=prefix, stages=PIPELINE_STAGES, timeout_s=stage_wait_s,

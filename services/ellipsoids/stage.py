@@ -6,6 +6,10 @@ grown by inflation = width/2 + safety_distance so the planner can treat the robo
 
 Fits are cached by cluster content: the sensing stage sends unchanged clusters byte-identical, and
 most of the map is unchanged from one scan to the next, so only new or grown clusters are refitted.
+
+A Clusters message holds at most as many points as the sensing stage remembers, all within the
+sensor's reach of the map (``services.limits``). Degenerate clusters (one point, all points equal,
+collinear: a wall seen edge-on) are real obstacles and are covered like any other.
 """
 
 from __future__ import annotations
@@ -24,11 +28,14 @@ from schemas.scenario import Scenario
 from services.convert import answer_header, ellipse_to_msg
 from services.ellipsoids.cover import cover_points
 from services.ellipsoids.gap import group_ellipses
+from services.limits import MAX_SENSED_POINTS, Reach, check_count
 
 
 @dataclass(frozen=True)
 class EllipsoidsConfig:
     inflation_m: float  # width/2 + safety_distance: how much each fitted ellipse is grown
+    reach: Reach
+    max_points: int = MAX_SENSED_POINTS  # over all clusters of one message
     tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its points
     max_pieces: int = 32  # ellipses per cluster at most
     cache_size: int = 1024  # clusters whose fits are remembered
@@ -40,7 +47,7 @@ class EllipsoidsConfig:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsConfig:
-        return cls(inflation_m=scenario.inflation_m)
+        return cls(inflation_m=scenario.inflation_m, reach=Reach.of(scenario))
 
 
 class EllipsoidsStage:
@@ -67,15 +74,21 @@ class EllipsoidsStage:
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if not isinstance(message, Clusters):
             raise StageInputError(f"ellipsoids does not handle {topic!r}")
-        raw: list[Ellipse] = []
-        cluster_ids: list[int] = []
+        check_count(sum(len(c.points) for c in message.clusters), limit=self.config.max_points,
+                    what="cluster points")
+        clouds = []
         for cluster in message.clusters:
             if not cluster.points:  # the schema forbids it; a hand-built message may not
                 raise StageInputError(f"cluster {cluster.cluster_id} has no points")
             points = np.asarray(cluster.points, dtype=float).reshape(-1, 2)
+            self.config.reach.check_points(points, what=f"cluster {cluster.cluster_id}")
+            clouds.append((cluster.cluster_id, points))
+        raw: list[Ellipse] = []
+        cluster_ids: list[int] = []
+        for cluster_id, points in clouds:
             for ellipse in self._cover(points):
                 raw.append(ellipse)
-                cluster_ids.append(cluster.cluster_id)
+                cluster_ids.append(cluster_id)
         labels = group_ellipses(raw, min_gap_m=self.config.min_gap_m)
         out = Ellipsoids(
             header=answer_header(scan_header=message.header, seq=self._seq),

@@ -8,6 +8,10 @@ current plan trimmed to start where the robot is, under the same `plan_id`.
 A replan starts at the robot's pose and heading and runs through the remaining goals. When the smoothed
 curve of a new plan would fail verification, the plan is re-optimised with wider margins (the same
 repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept.
+
+Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
+a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
+replaces the state or ellipsoids the planner holds.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
 from schemas.scenario import Scenario
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
+from services.limits import Reach
 from services.planner.core import PathPlan, intersected, plan_until_verified
 from services.planner.refine import RefineSettings
 from services.smoother.core import smooth
@@ -41,6 +46,7 @@ class PlannerConfig:
     bounds_max: FloatArray
     max_curvature: float  # the footprint centre's (Scenario.centre_max_curvature): the sim drives the centre
     inflation_m: float
+    reach: Reach
     # A sensed obstacle's cover grows as more of its surface comes into view, so a plan that hugged
     # the old cover at the known-map margin (level 1.02) soon lies inside the new one, often where the
     # car can no longer steer away. Online, plans keep a wider margin; and they bend to 0.9 of the
@@ -58,6 +64,7 @@ class PlannerConfig:
             bounds_max=np.array(scenario.bounds.max, dtype=float),
             max_curvature=scenario.centre_max_curvature,
             inflation_m=scenario.inflation_m,
+            reach=Reach.of(scenario),
         )
 
 
@@ -128,6 +135,7 @@ class PlannerStage:
         the answer independent of arrival order, and a lockstep run deterministic.
         """
         if isinstance(message, RobotState):
+            self._check_state(message)
             self.state = message
             pending, self.pending = self.pending, None
             if pending is not None and pending.scan_seq == message.header.seq:
@@ -135,10 +143,18 @@ class PlannerStage:
             return []
         if not isinstance(message, Ellipsoids):
             raise StageInputError(f"planner does not handle {topic!r}")
+        self.config.reach.check_ellipses(message.ellipsoids, what="ellipsoids")
         if self.state is None or self.state.header.seq < message.scan_seq:
             self.pending = message  # the state of this scan is still on its way
             return []
         return self._plan(message, self.state)
+
+    def _check_state(self, state: RobotState) -> None:
+        goals = len(self.config.goals)
+        if state.goals_reached > goals or state.goal_index >= goals:
+            raise StageInputError(f"state: goal_index {state.goal_index}, goals_reached {state.goals_reached}, "
+                                  f"but the scenario has {goals} goals")
+        self.config.reach.check_pose(state.pose, what="state")
 
     def _plan(self, message: Ellipsoids, state: RobotState) -> Outputs:
         goal_base = state.goals_reached

@@ -6,6 +6,9 @@ force at the sim. A `no_path` RawPath passes through as a `no_path` SmoothPath w
 
 The smoothing function is a parameter (`SmoothFn`), so an alternative smoother (e.g.
 `services.smoother.coarse`) reuses this shell and the same verification.
+
+A RawPath is bounded before any work (``services.limits``): at most ``MAX_PATH_POINTS`` points, all
+within the map's reach, and an ellipse set bounded in size and reach.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import RawPath, SmoothPath
 from schemas.scenario import Scenario
 from services.convert import answer_header, ellipses_from_msgs
+from services.limits import MAX_PATH_POINTS, Reach, check_count
 from services.smoother.core import Smoothed, smooth
 
 SmoothFn = Callable[..., Smoothed]  # same keywords as services.smoother.core.smooth
@@ -35,6 +39,7 @@ class SmootherConfig:
     bounds_min: FloatArray
     bounds_max: FloatArray
     max_curvature: float  # the footprint centre's (Scenario.centre_max_curvature): the sim drives the centre
+    reach: Reach
     output_spacing_m: float = 0.05  # CONTRACTS §4: the path is sampled at most 0.05 m apart
 
     @classmethod
@@ -45,6 +50,7 @@ class SmootherConfig:
             bounds_min=np.array(scenario.bounds.min, dtype=float),
             bounds_max=np.array(scenario.bounds.max, dtype=float),
             max_curvature=scenario.centre_max_curvature,
+            reach=Reach.of(scenario),
         )
 
 
@@ -62,6 +68,9 @@ class SmootherStage:
         if not isinstance(message, RawPath):
             raise StageInputError(f"smoother does not handle {topic!r}")
         config = self.config
+        check_count(len(message.points), limit=MAX_PATH_POINTS, what="raw path points")
+        config.reach.check_points(np.asarray(message.points, dtype=float).reshape(-1, 2), what="raw path")
+        config.reach.check_ellipses(message.ellipsoids, what="raw path")
         header = answer_header(scan_header=message.header, seq=self._seq)
         common = dict(header=header, scan_seq=message.scan_seq, goal_index=message.goal_index,
                       plan_id=message.plan_id)

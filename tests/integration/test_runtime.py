@@ -207,8 +207,9 @@ def test_good_scan_yields_clusters_on_the_wired_key(stage):
     assert [c.points for c in clusters.clusters] == [[(2.0, 4.0)], [(6.0, -8.0)]]
 
     report, _ = wait_for(stage.statuses, lambda s: status(s).header.stamp_s == pytest.approx(0.1 * seq))
-    assert str(report.encoding) == "application/json;cvxnav.StageStatus/1"
+    assert str(report.encoding) == "application/json;cvxnav.StageStatus/2"
     assert status(report).state == "ok"
+    assert status(report).input_stamp_s == pytest.approx(0.1 * seq)
     assert status(report).input_key == f"{stage.prefix}/scan"
 
 
@@ -224,6 +225,8 @@ def _clusters_payload() -> bytes:
 
 BAD_INPUTS = {
     "bad-json": (b'{"header": {', Scan.encoding(), "invalid JSON"),
+    "wrong-encoding": (make_scan(seq=1).model_dump_json().encode(), "image/png", "wrong encoding"),
+    "newer-version": (make_scan(seq=1).model_dump_json().encode(), "application/json;cvxnav.Scan/2", "wrong schema"),
     "clusters-on-scan-key": (_clusters_payload(), "application/json;cvxnav.Clusters/1", "wrong schema"),
     "clusters-without-encoding": (_clusters_payload(), None, "cvxnav.Scan/1: "),
     "nan": (_scan_doc_with_nan(), Scan.encoding(), "pose.theta_rad: Input should be a finite number"),
@@ -250,6 +253,9 @@ def test_bad_input_reports_error_and_stage_keeps_answering(stage, payload, encod
     assert reason in status(report).reason
     assert status(report).input_key == f"{stage.prefix}/scan"
     assert "\n" not in status(report).reason
+    # Only an input that decoded is named by its stamp: garbage is never a verdict on a real scan.
+    decoded = reason in ("scan has no points", "RuntimeError: solver failed: infeasible")
+    assert (status(report).input_stamp_s is not None) == decoded
 
     seq = stage.good_seq()
     stage.put_scan(make_scan(seq=seq))
@@ -379,3 +385,26 @@ def test_service_process_stops_cleanly_on_signal(signum):
             if process.poll() is None:
                 process.kill()
                 process.wait()
+
+
+def test_garbage_after_a_good_scan_is_reported_and_does_not_displace_it():
+    """A burst of undecodable payloads behind a good scan: each is reported, the good scan still answered."""
+    with running_stage(DoublingSensing(delay_s=0.3)) as harness:
+        harness.drain()
+        harness.put_scan(make_scan(seq=5000))  # the stage is busy with this one for 0.3 s ...
+        time.sleep(0.05)
+        seq = harness.good_seq()
+        harness.put_scan(make_scan(seq=seq))  # ... while this one and three bad payloads queue up
+        for _ in range(3):
+            harness.put_raw(b"{not json", encoding=Scan.encoding())
+        wait_for(harness.clusters, clusters_for(seq))
+        errors = 0
+        deadline = time.monotonic() + WAIT_S
+        while errors < 3 and time.monotonic() < deadline:
+            sample = harness.statuses.try_recv()
+            if sample is None:
+                time.sleep(0.01)
+            elif status(sample).state == "error":
+                errors += 1
+                assert "invalid JSON" in status(sample).reason and status(sample).input_stamp_s is None
+        assert errors == 3

@@ -1,0 +1,146 @@
+"""`cvxnav replay FILE --stage NAME [--entry module:factory]`: re-run one stage's core on a recording.
+
+The recording (`cvxnav.record`) holds every message of a run in receive order. Replay feeds the
+stage's inputs (its keys in the wiring table) to a fresh core, the default one or the factory named by
+``--entry`` (the same entry points `cvxnav run --stages` takes), through the same decode step as the
+Zenoh shell, and compares what it returns with what the stage published in the run.
+
+Outputs are matched by topic, ``scan_seq`` and their order among the outputs for that scan, and
+compared field by field (numbers within ``rtol``/``atol``; the header's sequence number included, so
+an output missing earlier shows up too). Inputs the recorded stage rejected are rejected again and
+counted. A lockstep run is deterministic per scan, so the default core reproduces its recording; a
+swapped one shows where it departs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+from cvxnav.record import Recorded, Recording
+from cvxnav.run import DEFAULT_FACTORIES, load_factory
+from cvxnav.runtime import StageCore, StageInputError
+from schemas.messages import DecodeError, Message, decode
+from schemas.wiring import STAGES, key, model_for
+
+RTOL = 1e-6
+ATOL = 1e-9
+MatchKey = tuple[str, int, int]  # topic, scan_seq, k-th output for that scan
+
+
+@dataclass
+class ReplayReport:
+    stage: str
+    inputs: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)  # reason kind -> count
+    compared: int = 0
+    differences: list[str] = field(default_factory=list)  # one line each, in output order
+    missing: list[MatchKey] = field(default_factory=list)  # recorded, not reproduced
+    extra: list[MatchKey] = field(default_factory=list)  # reproduced, not recorded
+
+    @property
+    def reproduced(self) -> bool:
+        return not (self.differences or self.missing or self.extra)
+
+    def summary(self, *, limit: int = 5) -> str:
+        rejected = sum(self.rejected.values())
+        head = (f"{self.stage}: {self.inputs} inputs ({rejected} rejected), {self.compared} outputs compared: "
+                + ("reproduced" if self.reproduced else
+                   f"{len(self.differences)} differ, {len(self.missing)} missing, {len(self.extra)} extra"))
+        lines = [head]
+        lines += [f"  differs: {d}" for d in self.differences[:limit]]
+        lines += [f"  missing: {t} for scan {s} (#{k})" for t, s, k in self.missing[:limit]]
+        lines += [f"  extra: {t} for scan {s} (#{k})" for t, s, k in self.extra[:limit]]
+        return "\n".join(lines)
+
+
+def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = None,
+                 rtol: float = RTOL, atol: float = ATOL) -> ReplayReport:
+    """Feed the stage's recorded inputs to a fresh core; compare its outputs with the recorded ones."""
+    spec = STAGES[stage]
+    core: StageCore = load_factory(entry_point or DEFAULT_FACTORIES[stage])(recording.scenario)
+    inputs = {key(recording.prefix, topic): topic for topic in spec.subscribes}
+    outputs = {key(recording.prefix, topic): topic for topic in spec.publishes}
+    report = ReplayReport(stage=stage)
+    recorded: dict[MatchKey, Message] = {}
+    replayed: dict[MatchKey, Message] = {}
+    counts_rec: defaultdict[tuple[str, int], int] = defaultdict(int)
+    counts_rep: defaultdict[tuple[str, int], int] = defaultdict(int)
+    for item in recording.messages:
+        if item.key in outputs:
+            message = _decoded(outputs[item.key], item)
+            if message is not None:
+                _index(recorded, counts_rec, outputs[item.key], message)
+        elif item.key in inputs:
+            report.inputs += 1
+            for topic, message in _process(core, inputs[item.key], item, report):
+                _index(replayed, counts_rep, topic, message)
+    for match in sorted(recorded.keys() | replayed.keys(), key=lambda m: (m[1], m[0], m[2])):
+        if match not in replayed:
+            report.missing.append(match)
+        elif match not in recorded:
+            report.extra.append(match)
+        else:
+            report.compared += 1
+            where = _first_difference(recorded[match].model_dump(mode="json"),
+                                      replayed[match].model_dump(mode="json"), rtol=rtol, atol=atol)
+            if where is not None:
+                topic, scan_seq, k = match
+                report.differences.append(f"{topic} for scan {scan_seq} (#{k}): {where}")
+    return report
+
+
+def _decoded(topic: str, item: Recorded) -> Message | None:
+    try:
+        return decode(model_for(topic), item.payload, encoding=item.encoding or None)
+    except DecodeError:
+        return None
+
+
+def _process(core: StageCore, topic: str, item: Recorded, report: ReplayReport) -> list[tuple[str, Message]]:
+    message = _decoded(topic, item)
+    if message is None:
+        report.rejected["undecodable"] = report.rejected.get("undecodable", 0) + 1
+        return []
+    try:
+        return core.process(topic=topic, message=message, now_s=item.log_time_ns * 1e-9)
+    except StageInputError:
+        report.rejected["rejected by the core"] = report.rejected.get("rejected by the core", 0) + 1
+    except Exception:  # as the Zenoh shell does: a failing core is reported, the replay goes on
+        report.rejected["core failed"] = report.rejected.get("core failed", 0) + 1
+    return []
+
+
+def _index(into: dict[MatchKey, Message], counts: defaultdict[tuple[str, int], int], topic: str,
+           message: Message) -> None:
+    scan_seq = getattr(message, "scan_seq", message.header.seq)
+    k = counts[(topic, scan_seq)]
+    counts[(topic, scan_seq)] += 1
+    into[(topic, scan_seq, k)] = message
+
+
+def _first_difference(a: Any, b: Any, *, rtol: float, atol: float, path: str = "") -> str | None:
+    """Where two JSON trees first differ (numbers within tolerance), as `path: recorded vs replayed`."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for name in sorted(a.keys() | b.keys()):
+            sub = f"{path}.{name}" if path else name
+            if name not in a or name not in b:
+                return f"{sub}: present in only one"
+            found = _first_difference(a[name], b[name], rtol=rtol, atol=atol, path=sub)
+            if found is not None:
+                return found
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return f"{path}: {len(a)} items recorded vs {len(b)} replayed"
+        for index, (x, y) in enumerate(zip(a, b)):
+            found = _first_difference(x, y, rtol=rtol, atol=atol, path=f"{path}[{index}]")
+            if found is not None:
+                return found
+        return None
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        return None if math.isclose(a, b, rel_tol=rtol, abs_tol=atol) else f"{path}: {a!r} recorded vs {b!r} replayed"
+    return None if a == b else f"{path}: {a!r} recorded vs {b!r} replayed"
