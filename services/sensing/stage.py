@@ -4,15 +4,22 @@ Every scan's hits go into a `PointMemory` (obstacles behind the 180° sensor sta
 remembered points are clustered anew by single linkage. Each cluster's points are sorted, and the
 clusters ordered by their first point, so the same memory always yields the same message: the next
 stage can then recognise an unchanged cluster by its content and skip refitting it.
+
+The memory is the one state of the pipeline that no later input restores (a point out of view is not
+seen again), so with a state directory (`recover`) it is checkpointed after every scan that adds to it,
+before the clusters that depend on it are published, and a restarted stage reloads it.
 """
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
+from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
 from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import ClusterMsg, Clusters, Scan
 from schemas.scenario import Scenario
@@ -42,17 +49,43 @@ class SensingStage:
         self.config = config
         self.memory = PointMemory(voxel_m=config.voxel_m, max_points=config.max_points)
         self._seq = 0
+        self._checkpoint: Path | None = None
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SensingStage:
         return cls(config=SensingConfig.from_scenario(scenario))
+
+    def recover(self, *, state_dir: Path) -> None:
+        """Reload the memory checkpointed in `state_dir` (if any); checkpoint it there from now on.
+
+        The file holds the remembered points least recently observed first; adding them back in that
+        order rebuilds the same voxels (each point is its voxel's representative) in the same age order.
+        """
+        self._checkpoint = state_dir / "points.npy"
+        data = read_checkpoint(self._checkpoint)
+        if data is None:
+            return
+        try:
+            points = np.load(io.BytesIO(data), allow_pickle=False)
+        except (ValueError, EOFError) as error:
+            raise CheckpointError(f"{self._checkpoint}: not a point checkpoint: {error}") from None
+        if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
+            raise CheckpointError(f"{self._checkpoint}: expected finite (n, 2) points, got shape {points.shape}")
+        self.memory.add(points)
+
+    def _save(self) -> None:
+        if self._checkpoint is not None:
+            buffer = io.BytesIO()
+            np.save(buffer, self.memory.points(), allow_pickle=False)
+            write_atomic(self._checkpoint, buffer.getvalue())
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if not isinstance(message, Scan):
             raise StageInputError(f"sensing does not handle {topic!r}")
         if message.header.frame_id != "map":
             raise StageInputError(f"scan points must be in the map frame, got frame_id={message.header.frame_id!r}")
-        self.memory.add(np.asarray(message.points, dtype=float).reshape(-1, 2))
+        if self.memory.add(np.asarray(message.points, dtype=float).reshape(-1, 2)):
+            self._save()
         clusters = []
         for points in cluster_points(self.memory.points(), link_m=self.config.link_m):
             ordered = points[np.lexsort((points[:, 1], points[:, 0]))]
