@@ -78,7 +78,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
-                     sim_options=sim_options,
+                     sim_options=sim_options, state_dir=args.state_dir,
                      max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
     except RunError as error:
         raise CliError(str(error)) from None
@@ -101,14 +101,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
                          record_messages=args.record_messages)
     started = time.monotonic()
     try:
-        code, result = run_pipeline(options=options, scenario=scenario)
+        code, result, restarts = run_pipeline(options=options, scenario=scenario)
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
     if result is None:
         print(f"{scenario.name}: timeout: the pipeline did not finish within the wall-clock guard", file=sys.stderr)
         return code
-    print(summary(result, wall_s=time.monotonic() - started, out_path=args.out))
+    print(summary(result, wall_s=time.monotonic() - started, out_path=args.out, restarts=restarts))
     return code
 
 
@@ -281,6 +281,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="an alternative implementation: a factory taking the scenario")
     service.add_argument("--max-payload-bytes", type=_positive_int, default=None, metavar="N",
                          help="reject (and report) an input message larger than N bytes (default 1 MiB)")
+    service.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
+                         help="keep state that must survive a restart here (sensing: point memory; planner: plan)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")

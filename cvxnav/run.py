@@ -8,10 +8,20 @@ up, then starts the sim. It follows the sim's state and paths for the progress b
 exits (it writes run.json itself) prints the summary and stops every child: SIGTERM, then SIGKILL
 after a grace period.
 
+A pipeline stage (or the monitor) that exits during the run is restarted on the same port, after a
+backoff that doubles with each recent restart (`RunOptions.restart_backoff_s`, capped at
+`restart_backoff_max_s`); more than `max_restarts` restarts of one stage within `restart_window_s`
+end the run (exit 4) with a line naming the stage and its log tail. The new process declares its
+liveliness token when it is up, and the sim, which brakes while a stage's token is gone, drives on
+once the restarted pipeline answers. Stages that keep state no later input restores (the sensing
+stage's point memory, the planner's plan) checkpoint it under `--state-dir` (`cvxnav.checkpoint`),
+one directory per stage, which outlives the process. The sim is not restarted: its exit ends the run.
+
 A stage is swapped by naming, in a JSON `stages` file, either a Python entry point
 `"module:factory"` (called with the scenario, returning a StageCore), or
 `{"command": ["prog", "arg", ...]}`: any process that speaks the stage's keys. Its arguments may use
-`{listen}`, `{connect}` (comma-separated endpoints), `{prefix}` and `{scenario}` (a file path).
+`{listen}`, `{connect}` (comma-separated endpoints), `{prefix}`, `{scenario}` (a file path) and
+`{state_dir}` (the stage's own directory for state that must survive a restart).
 
 The supervisor's own session is a peer of every stage. `--listen EP` makes it listen on EP as well,
 so an outside process (`cvxnav status --connect EP`, a test, a recorder elsewhere) can join the run's
@@ -34,7 +44,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import zenoh
 
@@ -126,6 +136,15 @@ def load_stages(path: Path | None) -> dict[str, StageChoice]:
 # --------------------------------------------------------------------------- one stage as a process
 
 
+@runtime_checkable
+class Recoverable(Protocol):
+    """A stage core with state that must survive a restart of its process (see `cvxnav.checkpoint`)."""
+
+    def recover(self, *, state_dir: Path) -> None:
+        """Reload the state checkpointed in `state_dir`, if any, and checkpoint there from now on."""
+        ...
+
+
 def serve(
     *,
     name: str,
@@ -135,10 +154,12 @@ def serve(
     entry_point: str | None = None,
     sim_options: Mapping[str, Any] | None = None,
     max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+    state_dir: Path | None = None,
 ) -> int:
     """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
 
-    An input payload larger than `max_payload_bytes` is rejected before it is decoded.
+    An input payload larger than `max_payload_bytes` is rejected before it is decoded. With
+    `state_dir`, a core that is `Recoverable` reloads its checkpointed state from there first.
     """
     stop = threading.Event()
     install_signal_handlers(stop)
@@ -154,6 +175,8 @@ def serve(
     if name not in STAGES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(STAGES)}")
     core = load_factory(entry_point or DEFAULT_FACTORIES[name])(scenario)
+    if state_dir is not None and isinstance(core, Recoverable):
+        core.recover(state_dir=state_dir)
     run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
               max_payload_bytes=max_payload_bytes)
     return 0
@@ -204,6 +227,21 @@ class RunOptions:
     monitor_args: tuple[str, ...] | None = None  # start the rerun monitor with these service options
     listen: tuple[str, ...] = ()  # extra endpoints the supervisor's session listens on
     record_messages: Path | None = None  # MCAP file of every message under the prefix
+    # A stage that exits is restarted after restart_backoff_s, doubled for each of its restarts within
+    # restart_window_s, at most restart_backoff_max_s; more than max_restarts of them end the run.
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 5.0
+    max_restarts: int = 4
+    restart_window_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class Restart:
+    """One restart: which stage exited, with what code, and when it was found dead (monotonic s)."""
+
+    stage: str
+    exit_code: int
+    found_s: float
 
 
 @dataclass
@@ -218,7 +256,7 @@ class _Progress:
 
 
 class Supervisor:
-    """Starts, watches and stops the stage processes of one run."""
+    """Starts, watches, restarts and stops the stage processes of one run."""
 
     def __init__(self, *, options: RunOptions, scenario: Scenario) -> None:
         self.options = options
@@ -228,8 +266,11 @@ class Supervisor:
         ports = free_ports(len(names) + 1)
         self.endpoints = {name: f"tcp/127.0.0.1:{port}" for name, port in zip(names, ports)}
         self.own_endpoint = f"tcp/127.0.0.1:{ports[-1]}"
-        self.children: list[Child] = []
+        self.children: dict[str, Child] = {}  # the newest process of each stage
+        self.restarts: list[Restart] = []
+        self._restart_due: dict[str, float] = {}  # stage -> monotonic time its restart is due
         self.log_dir = Path(tempfile.mkdtemp(prefix="cvxnav-run-"))
+        self.state_dir = self.log_dir / "state"
 
     def _others(self, name: str) -> list[str]:
         return [ep for other, ep in self.endpoints.items() if other != name] + [self.own_endpoint]
@@ -237,9 +278,11 @@ class Supervisor:
     def _command(self, name: str) -> list[str]:
         listen, connect = self.endpoints[name], self._others(name)
         scenario_arg = str(self.options.scenario_path) if self.options.scenario_path else ""
+        state_dir = str(self.state_dir / name)
         choice = self.options.stages.get(name)
         if choice is not None and choice.command is not None:
-            fields = dict(listen=listen, connect=",".join(connect), prefix=self.prefix, scenario=scenario_arg)
+            fields = dict(listen=listen, connect=",".join(connect), prefix=self.prefix, scenario=scenario_arg,
+                          state_dir=state_dir)
             return [arg.format(**fields) for arg in choice.command]
         cmd = [sys.executable, "-m", "cvxnav", "service", name, "--listen", listen, "--robot-id",
                self.options.robot_id]
@@ -247,10 +290,12 @@ class Supervisor:
             cmd += ["--connect", endpoint]
         if self.options.scenario_path:
             cmd += ["--scenario", scenario_arg]
+        if name in PIPELINE:
+            cmd += ["--state-dir", state_dir]
         if choice is not None and choice.entry_point is not None and choice.entry_point != DEFAULT_FACTORIES[name]:
             cmd += ["--entry", choice.entry_point]
         if name == "monitor":
-            cmd += list(self.options.monitor_args or ())
+            cmd += self._monitor_args()
         if name == "sim":
             cmd += ["--out", str(self.options.out_path), "--seed", str(self.options.seed),
                     "--noise-std-m", repr(self.options.noise_std_m)]
@@ -260,25 +305,68 @@ class Supervisor:
                 cmd += ["--time-limit-s", repr(self.options.time_limit_s)]
         return cmd
 
+    def _monitor_args(self) -> list[str]:
+        """The monitor's options; a restarted monitor records to run.1.rrd, run.2.rrd, … (no overwrite)."""
+        args = list(self.options.monitor_args or ())
+        count = self.restart_count("monitor")
+        if count and "--record" in args:
+            where = args.index("--record") + 1
+            record = Path(args[where])
+            args[where] = str(record.with_name(f"{record.stem}.{count}{record.suffix}"))
+            logger.warning("the monitor's recording continues in %s", args[where])
+        return args
+
+    def restart_count(self, name: str) -> int:
+        return sum(1 for restart in self.restarts if restart.stage == name)
+
     def start(self, name: str) -> Child:
-        log_path = self.log_dir / f"{name}.log"
+        count = self.restart_count(name)
+        log_path = self.log_dir / (f"{name}.log" if count == 0 else f"{name}.{count}.log")
         with open(log_path, "wb") as log:
             process = subprocess.Popen(self._command(name), stdin=subprocess.DEVNULL, stdout=log,
                                        stderr=subprocess.STDOUT, start_new_session=True)
         child = Child(name=name, process=process, log_path=log_path)
-        self.children.append(child)
+        self.children[name] = child
         return child
 
-    def check_alive(self, *, except_name: str | None = None) -> None:
-        for child in self.children:
-            if child.name != except_name and child.process.poll() is not None:
-                raise PipelineError(f"stage {child.name} exited with code {child.process.returncode}: "
-                                    f"{child.log_tail(lines=2)}")
+    def supervise(self) -> None:
+        """Restart every stage but the sim that has exited, once its backoff is over.
+
+        Raises PipelineError when a stage has exited more than `max_restarts` times within
+        `restart_window_s`: it keeps crashing, and restarting it again would not help.
+        """
+        now = time.monotonic()
+        for name, child in list(self.children.items()):
+            if name == "sim" or child.process.poll() is None:
+                continue
+            due = self._restart_due.get(name)
+            if due is None:
+                self._restart_due[name] = now + self._backoff(child, now=now)
+            elif now >= due:
+                del self._restart_due[name]
+                restarted = self.start(name)
+                logger.warning("stage %s restarted (pid %d, restart %d)", name, restarted.process.pid,
+                               self.restart_count(name))
+
+    def _backoff(self, child: Child, *, now: float) -> float:
+        """Record the exit of `child`; the delay before its restart, or PipelineError if it keeps crashing."""
+        options = self.options
+        code = child.process.returncode
+        recent = [r for r in self.restarts if r.stage == child.name and now - r.found_s <= options.restart_window_s]
+        if len(recent) >= options.max_restarts:
+            raise PipelineError(f"stage {child.name} keeps crashing ({len(recent) + 1} exits within "
+                                f"{options.restart_window_s:.0f} s, last code {code}): {child.log_tail(lines=3)}")
+        self.restarts.append(Restart(stage=child.name, exit_code=code, found_s=now))
+        delay = min(options.restart_backoff_max_s, options.restart_backoff_s * 2.0 ** len(recent))
+        logger.warning("stage %s exited with code %d; restarting it in %.1f s: %s", child.name, code, delay,
+                       child.log_tail(lines=1))
+        return delay
 
     def stop(self) -> None:
         """SIGTERM every child, SIGKILL those still running after the grace period."""
-        killed = stop_processes([child.process for child in self.children], grace_s=self.options.stop_grace_s)
-        for child in self.children:
+        children = list(self.children.values())
+        killed = stop_processes([child.process for child in children], grace_s=self.options.stop_grace_s)
+        for child in children:
             if child.process in killed:
                 logger.warning("stage %s ignored SIGTERM; it was killed", child.name)
 
@@ -304,16 +392,16 @@ def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: fl
     from sim.service import wait_for_stages
 
     deadline = time.monotonic() + timeout_s
-    missing = {child.name for child in supervisor.children}  # the pipeline, and the monitor if asked
+    missing = set(supervisor.children)  # the pipeline, and the monitor if asked
     while missing and time.monotonic() < deadline:
-        supervisor.check_alive()
+        supervisor.supervise()
         missing = wait_for_stages(session, prefix=supervisor.prefix, stages=tuple(missing), timeout_s=1.0)
     if missing:
         raise PipelineError(f"stages not alive after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
 
 
-def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFile | None]:
-    """Run every stage as a process until the sim ends; the exit code and the run file."""
+def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFile | None, int]:
+    """Run every stage as a process until the sim ends; the exit code, the run file and the restarts."""
     from sim.service import default_time_limit_s
 
     supervisor = Supervisor(options=options, scenario=scenario)
@@ -358,44 +446,51 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
         supervisor.stop()
         if recorder is not None:
             recorder.close()
+    restarts = len(supervisor.restarts)
     if code is None:
-        return EXIT_BY_STATUS["timeout"], None
+        return EXIT_BY_STATUS["timeout"], None, restarts
     try:
         result = RunFile.read(options.out_path)
     except OutputFileError as error:
         raise PipelineError(f"the sim wrote no usable run file: {error}") from None
-    return EXIT_BY_STATUS[result.status], result
+    return EXIT_BY_STATUS[result.status], result, restarts
 
 
 def _follow(*, sim: Child, supervisor: Supervisor, progress: _Progress, time_limit_s: float,
             wall_limit_s: float, goals: int, show: bool) -> int | None:
-    """Show progress until the sim exits; None when it ran past the wall-clock guard."""
+    """Show progress and restart crashed stages until the sim exits; None when it ran past the wall-clock guard."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     columns = (TextColumn("[bold]cvxnav run"), BarColumn(),
-               TextColumn("sim {task.fields[sim_s]:6.1f} s  goals {task.fields[goals]}  replans {task.fields[replans]}"),
+               TextColumn("sim {task.fields[sim_s]:6.1f} s  goals {task.fields[goals]}  replans "
+                          "{task.fields[replans]}  restarts {task.fields[restarts]}"),
                TimeElapsedColumn())
     deadline = time.monotonic() + wall_limit_s
     with Progress(*columns, disable=not show) as bar:
-        task = bar.add_task("run", total=time_limit_s, sim_s=0.0, goals=f"0/{goals}", replans=0)
+        task = bar.add_task("run", total=time_limit_s, sim_s=0.0, goals=f"0/{goals}", replans=0, restarts=0)
+
+        def update() -> None:
+            bar.update(task, completed=progress.sim_time_s, sim_s=progress.sim_time_s,
+                       goals=f"{progress.goals_reached}/{goals}", replans=progress.replans,
+                       restarts=len(supervisor.restarts))
+
         while sim.process.poll() is None:
-            supervisor.check_alive(except_name="sim")
+            supervisor.supervise()
             if time.monotonic() > deadline:
                 sim.process.kill()
                 sim.process.wait()
                 return None
-            bar.update(task, completed=progress.sim_time_s, sim_s=progress.sim_time_s,
-                       goals=f"{progress.goals_reached}/{goals}", replans=progress.replans)
+            update()
             time.sleep(0.1)
-        bar.update(task, completed=progress.sim_time_s, sim_s=progress.sim_time_s,
-                   goals=f"{progress.goals_reached}/{goals}", replans=progress.replans)
+        update()
     return sim.process.returncode
 
 
-def summary(result: RunFile, *, wall_s: float, out_path: Path) -> str:
-    """One line: outcome, goals, sim and wall time, replans, latency, clearance, file."""
+def summary(result: RunFile, *, wall_s: float, out_path: Path, restarts: int = 0) -> str:
+    """One line: outcome, goals, sim and wall time, replans, restarts, latency, clearance, file."""
     t_end = result.trajectory[-1][0] if result.trajectory else 0.0
     lat = result.latency_ms
     return (f"{result.scenario}: {result.status}, goals {result.goals_reached}, sim {t_end:.1f} s in "
-            f"{wall_s:.1f} s wall, replans {result.replans}, scan->path latency p50 {lat.p50:.0f} / "
-            f"p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance {result.min_clearance:.3f} m -> {out_path}")
+            f"{wall_s:.1f} s wall, replans {result.replans}, stage restarts {restarts}, scan->path latency "
+            f"p50 {lat.p50:.0f} / p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance "
+            f"{result.min_clearance:.3f} m -> {out_path}")

@@ -8,6 +8,7 @@ and the monitor read this table; no stage names a key of its own.
     ellipsoids --ellipsoids-->    planner
     planner    --raw_path-->      smoother
     smoother   --smooth_path-->   sim
+    ellipsoids --ellipsoids-->    sim (which checks every path against them before driving on it)
     sim        --world-->         monitor only (the true map; no planning stage may read it)
 
 The monitor (``MONITOR``) is a sink outside ``STAGES``: it reads every topic and every status, and
@@ -72,7 +73,7 @@ STAGES: Mapping[str, StageSpec] = MappingProxyType(
     {
         spec.name: spec
         for spec in (
-            StageSpec(name="sim", subscribes=("smooth_path",), publishes=("scan", "state", "world")),
+            StageSpec(name="sim", subscribes=("smooth_path", "ellipsoids"), publishes=("scan", "state", "world")),
             StageSpec(name="sensing", subscribes=("scan",), publishes=("clusters",)),
             StageSpec(name="ellipsoids", subscribes=("clusters",), publishes=("ellipsoids",)),
             StageSpec(name="planner", subscribes=("ellipsoids", "state"), publishes=("raw_path",)),

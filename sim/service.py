@@ -16,6 +16,19 @@ answers and integrates the car. `run_sim` is the Zenoh shell around it, in one o
 Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
 A smooth_path it cannot use (oversize, undecodable, or answering a scan it never sent) is ignored and
 reported on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input.
+Two watchdogs add to that:
+
+- liveliness: the sim follows the pipeline stages' tokens (`<prefix>/alive/*`). When one disappears
+  (its process died) the car brakes at once, and it drives again only on an answer to a scan sent after
+  the loss, once every stage is back. In lockstep the sim then stops waiting for the answer to the
+  current scan (none will come) and runs on the wall clock, braking and standing, until the stage is
+  back; so a restart costs the car the restart time, never the answer timeout. Scan hits taken while
+  the sensing stage was down ride along with every scan until the pipeline answers one, so the
+  restarted stage's memory misses nothing the car saw (its point memory dedupes them).
+- the path check (`sim.guard`): every path, and the path being driven whenever newer ellipses arrive,
+  is checked against the newest grown ellipses from the ellipsoid stage; a path that enters one is not
+  driven. For a received path the sim says why on `<prefix>/status/sim`; a driven path that newer
+  ellipses cross is routine (the planner replans on the same ellipses), so it is only logged.
 """
 
 from __future__ import annotations
@@ -32,11 +45,22 @@ import zenoh
 
 from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, one_line
 from schemas.files import LatencyStats, RunFile
-from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, SmoothPath, StageStatus, decode
+from schemas.messages import (
+    DecodeError,
+    Ellipsoids,
+    Header,
+    Pose2D,
+    RobotState,
+    Scan,
+    SmoothPath,
+    StageStatus,
+    decode,
+)
 from schemas.messages import World as WorldMessage
 from schemas.scenario import Scenario
 from schemas.wiring import STAGES, alive_key, key, status_key
 from sim.controller import GoalTracker, PurePursuit
+from sim.guard import PathGuard, ahead
 from sim.sensor import RangeSensor
 from sim.truth import world_message
 from sim.vehicle import VehicleLimits, VehicleState, step
@@ -46,6 +70,9 @@ logger = logging.getLogger(__name__)
 
 Outcome = str  # "reached" | "no_path" | "timeout" | "collision"
 PIPELINE_STAGES = tuple(name for name in STAGES if name != "sim")
+_UNHEARD_CELL_M = 0.01  # hits kept for a restarted sensing stage: one per cell of this size
+_UNHEARD_MAX = 10_000  # and at most this many (the newest), so a scan stays well under the payload cap
+_SCAN_POSES_KEPT = 256  # where the recent scans were taken (a path is checked from its scan's pose)
 
 
 def default_time_limit_s(scenario: Scenario) -> float:
@@ -95,6 +122,12 @@ class SimCore:
         self.no_path_since_s: float | None = None
         self.no_path_reason = ""
         self.plan_ids: list[int] = []
+        self.guard = PathGuard()
+        self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
+        self.resume_seq = 0  # answers to earlier scans are not driven on: they predate a stage's loss
+        self.scan_xy: dict[int, tuple[float, float]] = {}  # recent scans' positions, by seq
+        self.unheard: dict[tuple[int, int], tuple[float, float]] = {}  # hits the sensing stage missed
+        self.unheard_seq: int | None = None  # the first scan that carried them to a live sensing stage
         self.trajectory: list[tuple[float, float, float, float]] = [self._row()]
         self.min_clearance_m = self.world.footprint_clearance(self.state)
         self.outcome: Outcome | None = None
@@ -121,17 +154,73 @@ class SimCore:
         )
 
     def sense(self) -> tuple[RobotState, Scan]:
-        """The state and the scan of this sensor tick; both carry the tick's seq and sim time."""
+        """The state and the scan of this sensor tick; both carry the tick's seq and sim time.
+
+        While the sensing stage is down its hits are kept (one per 1 cm cell); once it is back they are
+        sent with every scan until the pipeline answers one of those scans.
+        """
         s = self.state
         hits = self.sensor.scan(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad,
                                 obstacles=self.world.ray_targets, rng=self.rng)
+        points = [(float(x), float(y)) for x, y in hits]
+        if "sensing" in self.missing:
+            self._keep_unheard(points)
+        elif self.unheard:
+            if self.unheard_seq is None:
+                self.unheard_seq = self.scan_seq
+            points = list(self.unheard.values()) + points
+        self.scan_xy[self.scan_seq] = (s.x_m, s.y_m)
+        while len(self.scan_xy) > _SCAN_POSES_KEPT:
+            del self.scan_xy[next(iter(self.scan_xy))]
         scan = Scan(header=Header(stamp_s=self.t_s, seq=self.scan_seq),
-                    pose=Pose2D(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad),
-                    points=[(float(x), float(y)) for x, y in hits])
+                    pose=Pose2D(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad), points=points)
         return self.robot_state(), scan
 
-    def accept(self, answer: SmoothPath) -> None:
-        """Take the pipeline's newest answer: a path to follow, or its verdict that there is none."""
+    def _keep_unheard(self, points: list[tuple[float, float]]) -> None:
+        for x, y in points:
+            cell = (math.floor(x / _UNHEARD_CELL_M), math.floor(y / _UNHEARD_CELL_M))
+            self.unheard.pop(cell, None)
+            self.unheard[cell] = (x, y)
+        while len(self.unheard) > _UNHEARD_MAX:
+            del self.unheard[next(iter(self.unheard))]
+
+    def stage_lost(self, stage: str) -> None:
+        """A pipeline stage's token is gone: brake, and drive only on answers to scans sent from now on."""
+        if stage in self.missing:
+            return
+        self.missing.add(stage)
+        self.reject(f"stage {stage} is down")
+        self.resume_seq = self.scan_seq + 1
+
+    def stage_back(self, stage: str) -> None:
+        """A stage's token is back; the car still waits for an answer to a scan sent after the loss."""
+        self.missing.discard(stage)
+
+    def know(self, ellipsoids: Ellipsoids) -> str | None:
+        """Take newer grown ellipses and re-check the rest of the path being driven against them.
+
+        Returns why the path was dropped (the car brakes), None when it is still clear or there is none.
+        """
+        self.guard.know(ellipsoids)
+        if self.path is None:
+            return None
+        position = (self.state.x_m, self.state.y_m)
+        reason = self.guard.check(ahead(self.path, position=position), start=position)
+        if reason is not None:
+            self.reject(f"newer obstacles: {reason}")
+        return reason
+
+    def accept(self, answer: SmoothPath) -> str | None:
+        """Take the pipeline's newest answer: a path to follow, or its verdict that there is none.
+
+        An answer is ignored while a stage is down or when it answers a scan sent before the loss. A
+        path that enters a known ellipse is not driven (the car brakes); the reason is returned.
+        """
+        if self.missing or answer.scan_seq < self.resume_seq:
+            return None
+        if self.unheard_seq is not None and answer.scan_seq >= self.unheard_seq:
+            self.unheard.clear()  # the restarted sensing stage has had them
+            self.unheard_seq = None
         if not self.plan_ids or self.plan_ids[-1] != answer.plan_id:
             self.plan_ids.append(answer.plan_id)
         if answer.status == "no_path":
@@ -139,13 +228,19 @@ class SimCore:
             self.no_path_reason = answer.reason
             if self.no_path_since_s is None:
                 self.no_path_since_s = self.t_s
-            return
+            return None
         if answer.goal_index != self.goals.reached_count or len(answer.points) < 2:
-            return  # planned for a goal already passed: keep the current path until the replan
+            return None  # planned for a goal already passed: keep the current path until the replan
+        start = self.scan_xy.get(answer.scan_seq, (self.state.x_m, self.state.y_m))
+        reason = self.guard.check(answer.points, start=start)
+        if reason is not None:
+            self.reject(f"plan {answer.plan_id}: {reason}")
+            return reason
         self.path = np.asarray(answer.points, dtype=float)
         self.path_time_s = self.t_s
         self.progress_m = None
         self.no_path_since_s = None
+        return None
 
     def reject(self, reason: str) -> None:
         """The pipeline could not verify a path for the newest scan: brake rather than drive on.
@@ -211,16 +306,21 @@ class SimCore:
 
 @dataclass
 class _Answers:
-    """What the sim hears back: paths by scan_seq, and stage errors by the scan stamp they concern."""
+    """What the sim hears back: paths by scan_seq, stage errors by the scan stamp they concern, the
+    ellipsoid stage's newest grown ellipses and the pipeline stages' liveliness changes; and where it
+    says why it would not drive on a path."""
 
     paths: zenoh.Subscriber
     statuses: zenoh.Subscriber
-    status_pub: zenoh.Publisher
+    status_pub: zenoh.Publisher  # the sim's own status
     max_payload_bytes: int
+    ellipsoids: zenoh.Subscriber
+    alive: zenoh.Subscriber
     published_at: dict[int, float] = field(default_factory=dict)  # scan seq -> perf_counter
     stamps: dict[int, float] = field(default_factory=dict)  # scan seq -> sim stamp
     latencies_ms: list[float] = field(default_factory=list)
     rejected: dict[float, str] = field(default_factory=dict)  # scan stamp -> reason
+    back_at: float = -math.inf  # monotonic time a stage last came back
     status_seq: int = 0
 
     def newest_path(self) -> SmoothPath | None:
@@ -265,6 +365,40 @@ class _Answers:
             if status.state == "error" and status.stage != "sim" and status.input_stamp_s is not None:
                 self.rejected[status.input_stamp_s] = f"{status.stage}: {status.reason}"
 
+    def watch(self, core: SimCore) -> None:
+        """Pass liveliness changes and the newest ellipses to the core; log a path the ellipses dropped."""
+        while (sample := self.alive.try_recv()) is not None:
+            stage = str(sample.key_expr).rsplit("/", 1)[-1]
+            if stage not in PIPELINE_STAGES:
+                continue
+            if sample.kind == zenoh.SampleKind.DELETE:
+                if stage not in core.missing:
+                    logger.warning("stage %s is down: braking until it is back and a fresh plan arrives", stage)
+                core.stage_lost(stage)
+            elif stage in core.missing:
+                logger.warning("stage %s is back", stage)
+                core.stage_back(stage)
+                self.back_at = time.monotonic()
+        newest = None
+        while (sample := self.ellipsoids.try_recv()) is not None:
+            try:
+                message = decode(Ellipsoids, sample.payload.to_bytes(), encoding=str(sample.encoding))
+            except DecodeError:
+                continue  # the planner reports a bad message on its status; there is nothing to know here
+            if newest is None or message.scan_seq >= newest.scan_seq:
+                newest = message
+        if newest is not None:
+            dropped = core.know(newest)
+            if dropped is not None:  # the planner replans on the same ellipses: routine, not an error
+                logger.info("newer obstacles cross the path being driven; braking until the replan: %s", dropped)
+
+    def take(self, core: SimCore, answer: SmoothPath) -> None:
+        """Hand the core an answer; if it will not drive on it, say why on the sim's status key."""
+        reason = core.accept(answer)
+        if reason is None:
+            return
+        self._report(str(self.paths.key_expr), f"plan {answer.plan_id} for scan {answer.scan_seq} not driven: {reason}")
+
 
 def wait_for_stages(session: zenoh.Session, *, prefix: str, stages: tuple[str, ...], timeout_s: float,
                     stop_event: threading.Event | None = None) -> set[str]:
@@ -308,17 +442,23 @@ def run_sim(
         state_pub = session.declare_publisher(key(prefix, "state"),
                                               encoding=zenoh.Encoding(RobotState.encoding()),
                                               congestion_control=block)
-        answers = _Answers(paths=session.declare_subscriber(key(prefix, "smooth_path")),
-                           statuses=session.declare_subscriber(status_key(prefix, "*")),
-                           status_pub=session.declare_publisher(status_key(prefix, "sim"),
-                                                                encoding=zenoh.Encoding(StageStatus.encoding())),
-                           max_payload_bytes=config.max_payload_bytes)
+        answers = _Answers(
+            paths=session.declare_subscriber(key(prefix, "smooth_path")),
+            statuses=session.declare_subscriber(status_key(prefix, "*")),
+            status_pub=session.declare_publisher(status_key(prefix, "sim"),
+                                                 encoding=zenoh.Encoding(StageStatus.encoding())),
+            max_payload_bytes=config.max_payload_bytes,
+            ellipsoids=session.declare_subscriber(key(prefix, "ellipsoids")),
+            alive=session.liveliness().declare_subscriber(alive_key(prefix, "*"), history=True),
+        )
         token = session.liveliness().declare_token(alive_key(prefix, "sim"))
         world_queryable = _publish_world(session, scenario=scenario, prefix=prefix)
         missing = wait_for_stages(session, prefix=prefix, stages=PIPELINE_STAGES, timeout_s=stage_wait_s,
                                   stop_event=stop_event)
         if missing:
             logger.warning("stages not alive after %.0f s: %s", stage_wait_s, ", ".join(sorted(missing)))
+        for stage in missing:
+            core.stage_lost(stage)
 
         def publish_tick() -> None:
             state, scan = core.sense()
@@ -343,19 +483,28 @@ def run_sim(
     return result
 
 
+# A stage that came back this recently may have missed the scan: re-send it if no answer came in a second.
+_REJOIN_RESEND_S = 5.0
+
+
 def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event,
                    timeout_s: float) -> None:
     while core.outcome is None and not stop_event.is_set():
         seq = core.scan_seq
         publish_tick()
         stamp = core.t_s
-        deadline = time.monotonic() + timeout_s
-        resend_at = time.monotonic() + 1.0
+        started = time.monotonic()
+        deadline = started + timeout_s
+        resend_at = started + 1.0
         answered = False
         while not answered and time.monotonic() < deadline and not stop_event.is_set():
+            answers.watch(core)
+            if core.missing:
+                break  # no answer will come: brake on the wall clock until the stage is back
             answer = answers.newest_path()
             if answer is not None and answer.scan_seq == seq:
-                core.accept(answer)
+                _await_ellipsoids(core=core, answers=answers, seq=seq, deadline=min(deadline, time.monotonic() + 1.0))
+                answers.take(core, answer)
                 answered = True
                 break
             answers.drain_statuses()
@@ -364,16 +513,28 @@ def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
                 core.reject(reasons[0])  # no verified path for what the car now knows: brake
                 answered = True
                 break
-            if seq == 0 and time.monotonic() >= resend_at:
-                publish_tick()  # routes to fresh peers may not have been up for the very first scan
+            rejoined = time.monotonic() - answers.back_at < _REJOIN_RESEND_S
+            if (seq == 0 or rejoined) and time.monotonic() >= resend_at:
+                publish_tick()  # routes to fresh (or restarted) peers may not have been up for this scan
                 resend_at = time.monotonic() + 1.0
             time.sleep(0.0005)
         answers.rejected.clear()
-        if not answered and not stop_event.is_set():
+        stalled = bool(core.missing)
+        if not answered and not stalled and not stop_event.is_set():
             logger.warning("no answer to scan %d within %.1f s; driving on what the car has", seq, timeout_s)
         for _ in range(core.steps_per_scan):
             if core.advance() is not None:
                 return
+        if stalled:
+            stop_event.wait(max(0.0, started + core.steps_per_scan * core.config.dt_s - time.monotonic()))
+
+
+def _await_ellipsoids(*, core: SimCore, answers: _Answers, seq: int, deadline: float) -> None:
+    """Lockstep: the ellipses of scan `seq` come straight from their stage, the path two stages later;
+    wait (briefly) for them so the path is checked against the same obstacles in every run."""
+    while core.guard.scan_seq < seq and time.monotonic() < deadline:
+        time.sleep(0.0005)
+        answers.watch(core)
 
 
 def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event) -> None:
@@ -381,9 +542,10 @@ def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
     while core.outcome is None and not stop_event.is_set():
         if core.scan_due:
             publish_tick()
+        answers.watch(core)
         answer = answers.newest_path()
         if answer is not None:
-            core.accept(answer)
+            answers.take(core, answer)
         answers.drain_statuses()
         published = set(answers.stamps.values())
         concerning = [reason for stamp, reason in answers.rejected.items() if stamp in published]

@@ -12,16 +12,26 @@ repairs as `cvxnav plan`), so the smoother downstream is handed a path it can ac
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
 replaces the state or ellipsoids the planner holds.
+
+With a state directory (`recover`) the current plan and the plan counter are checkpointed on every
+replan, and a restarted stage reloads them. Nothing unsafe rides on this: a reloaded plan is only
+re-published after the same check against the newest ellipsoids as any kept plan (`_still_valid`),
+else the stage replans. What it keeps is continuity: the car resumes the route it was committed to
+(a fresh plan from a standstill may go round the other side of an obstacle) and plan ids stay unique,
+so a consumer counting replans by id does not count the old ids twice.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
+from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
 from cvxnav.geometry import Ellipse, FloatArray
 from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
@@ -122,10 +132,33 @@ class PlannerStage:
         self.plan_goal_base = 0  # goals reached when the current plan was made
         self.plan_id = 0
         self._seq = 0
+        self._checkpoint: Path | None = None
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> PlannerStage:
         return cls(config=PlannerConfig.from_scenario(scenario))
+
+    def recover(self, *, state_dir: Path) -> None:
+        """Reload the plan checkpointed in `state_dir` (if any); checkpoint it there on every replan."""
+        self._checkpoint = state_dir / "plan.json"
+        data = read_checkpoint(self._checkpoint)
+        if data is None:
+            return
+        try:
+            doc = json.loads(data)
+            plan = None if doc["plan"] is None else np.asarray(doc["plan"], dtype=float).reshape(-1, 2)
+            goal_base, plan_id = int(doc["goal_base"]), int(doc["plan_id"])
+        except (ValueError, TypeError, KeyError) as error:
+            raise CheckpointError(f"{self._checkpoint}: not a plan checkpoint: {error!r}") from None
+        if plan is not None and not np.all(np.isfinite(plan)):
+            raise CheckpointError(f"{self._checkpoint}: the plan has non-finite points")
+        self.plan, self.plan_goal_base, self.plan_id = plan, goal_base, plan_id
+
+    def _save(self) -> None:
+        if self._checkpoint is not None:
+            plan = None if self.plan is None else self.plan.tolist()
+            doc = {"plan": plan, "goal_base": self.plan_goal_base, "plan_id": self.plan_id}
+            write_atomic(self._checkpoint, json.dumps(doc).encode())
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         """Plan for a scan once both its ellipsoids and the robot state of that scan are here.
@@ -184,6 +217,7 @@ class PlannerStage:
                 logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
                 self.plan = None
                 status, reason, points = "no_path", plan.reason, np.zeros((0, 2))
+            self._save()
         out = RawPath(
             header=answer_header(scan_header=message.header, seq=self._seq),
             scan_seq=message.scan_seq,

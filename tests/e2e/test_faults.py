@@ -1,0 +1,199 @@
+"""`cvxnav run` under faults: real stage processes killed with SIGKILL mid-run, and a stage that cannot start.
+
+The test finds the stage processes the way an operator would, as children of the `cvxnav run` process
+in /proc, and watches the run from outside over Zenoh: a peer of its own, connected to every stage's
+listen endpoint (taken from the stage's command line), following the sim's state and the stages'
+liveliness tokens.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from cvxnav.zenoh_config import build_zenoh_config
+from schemas.files import RunFile
+from schemas.messages import RobotState, decode
+from schemas.scenario import bundled_scenario
+from schemas.wiring import alive_key, default_prefix, key
+from sim.vehicle import VehicleLimits
+
+PAPER = bundled_scenario()
+PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
+PREFIX = default_prefix()
+WAIT_S = 90.0  # a guard against a hung run, not a speed requirement
+
+
+def stage_processes(parent_pid: int) -> dict[str, tuple[int, list[str]]]:
+    """The `cvxnav service NAME` children of `parent_pid`: name -> (pid, argv), read from /proc."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = [arg.decode() for arg in (entry / "cmdline").read_bytes().split(b"\0") if arg]
+        except OSError:
+            continue  # exited while we looked
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == parent_pid and "service" in argv:
+            found[argv[argv.index("service") + 1]] = (int(entry.name), argv)
+    return found
+
+
+def wait_for(condition: Callable[[], object], *, what: str) -> object:
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.01)
+    pytest.fail(f"gave up waiting for {what}")
+
+
+@dataclass
+class Observer:
+    """The sim's newest state and the liveliness events, each with the sim time at which it was seen."""
+
+    stamp_s: float = 0.0
+    speed_mps: float = 0.0
+    events: list[tuple[str, bool, float]] = field(default_factory=list)  # stage, alive, sim time
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_state(self, sample: zenoh.Sample) -> None:
+        state = decode(RobotState, sample.payload.to_bytes())
+        with self.lock:
+            self.stamp_s, self.speed_mps = state.header.stamp_s, state.speed_mps
+
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        stage = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            self.events.append((stage, sample.kind == zenoh.SampleKind.PUT, self.stamp_s))
+
+    def back_since(self, stage: str, index: int) -> float | None:
+        """Sim time at which `stage`'s token came back, among the events from `index` on."""
+        with self.lock:
+            lost = False
+            for name, alive, stamp in self.events[index:]:
+                if name == stage and not alive:
+                    lost = True
+                elif name == stage and alive and lost:
+                    return stamp
+        return None
+
+
+@dataclass(frozen=True)
+class Kill:
+    stage: str
+    old_pid: int
+    new_pid: int
+    killed_s: float  # sim time
+    speed_mps: float  # at the kill
+    back_s: float  # sim time the restarted stage's token was seen
+
+
+def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:
+    """Sim time and footprint speed of each trajectory step."""
+    traj = np.array(run.trajectory)
+    return traj[1:, 0], np.linalg.norm(np.diff(traj[:, 1:3], axis=0), axis=1) / np.diff(traj[:, 0])
+
+
+@pytest.fixture(scope="module")
+def killed_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, list[Kill]]:
+    """The paper scenario with each pipeline stage SIGKILLed once while the car drives."""
+    cwd = tmp_path_factory.mktemp("killed")
+    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json"], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    kills: list[Kill] = []
+    try:
+        children = wait_for(lambda: (found := stage_processes(proc.pid)) and "sim" in found and found,
+                            what="the sim to start")
+        config = build_zenoh_config(connect=[argv[argv.index("--listen") + 1] for _, argv in children.values()])
+        # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
+        config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
+        observer = Observer()
+        with zenoh.open(config) as session:
+            subscribers = (session.declare_subscriber(key(PREFIX, "state"), observer.on_state),
+                           session.liveliness().declare_subscriber(alive_key(PREFIX, "*"), observer.on_alive,
+                                                                   history=True))
+            drive_from_s = 2.0
+            for stage in PIPELINE:
+                # Kill while the car drives, some way along the route from the previous restart.
+                wait_for(lambda: observer.stamp_s >= drive_from_s and observer.speed_mps > 0.3,
+                         what=f"the car to drive before killing {stage}")
+                old_pid = stage_processes(proc.pid)[stage][0]
+                with observer.lock:
+                    index, killed_s, speed = len(observer.events), observer.stamp_s, observer.speed_mps
+                os.kill(old_pid, signal.SIGKILL)
+                new_pid = wait_for(lambda: (pid := stage_processes(proc.pid).get(stage, (old_pid,))[0]) != old_pid
+                                   and pid, what=f"a new {stage} process")
+                back_s = wait_for(lambda: observer.back_since(stage, index), what=f"{stage}'s token to come back")
+                kills.append(Kill(stage=stage, old_pid=old_pid, new_pid=new_pid, killed_s=killed_s,
+                                  speed_mps=speed, back_s=back_s))
+                drive_from_s = back_s + 2.5
+            for subscriber in subscribers:
+                subscriber.undeclare()
+        stdout, stderr = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)  # the supervisor stops its stages on the way out
+            proc.communicate(timeout=30.0)
+    completed = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    return completed, RunFile.read(cwd / "run.json"), kills
+
+
+def test_every_killed_stage_is_restarted_and_the_run_still_reaches_every_goal(killed_run):
+    proc, run, kills = killed_run
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert run.status == "reached" and run.goals_reached == len(PAPER.goals)
+    assert run.min_clearance >= 0.5 * PAPER.robot.safety_distance
+    assert [kill.stage for kill in kills] == list(PIPELINE)
+    for kill in kills:
+        assert kill.new_pid != kill.old_pid
+        assert f"stage {kill.stage} restarted (pid {kill.new_pid}" in proc.stderr
+    assert "stage restarts 4" in proc.stdout
+
+
+def test_the_car_brakes_to_a_stop_and_waits_while_a_stage_is_down(killed_run):
+    _, run, kills = killed_run
+    t, v = speeds(run)
+    decel = VehicleLimits.from_scenario(PAPER).max_decel_mps2
+    for kill in kills:
+        # Stopped within the braking distance's time (plus a scan of detection and stamp lag) ...
+        stopped_by_s = kill.killed_s + kill.speed_mps / decel + 0.3
+        # ... and standing until the restarted stage was back (less its reconnect and a scan of stamp lag).
+        standing = (t >= stopped_by_s) & (t <= kill.back_s - 0.3)
+        assert standing.any(), f"{kill.stage}: back at {kill.back_s:.2f} s, too soon to see the car stand"
+        assert np.max(v[standing]) < 1e-3, f"{kill.stage}: the car moved while the stage was down"
+        # Braking never speeds the car up.
+        braking = (t > kill.killed_s + 0.1) & (t < stopped_by_s)
+        assert np.all(np.diff(v[braking]) <= 1e-3), f"{kill.stage}: the car sped up while braking"
+        # And it drove on once the stage was back.
+        assert np.max(v[t > kill.back_s], initial=0.0) > 0.3
+
+
+def test_a_stage_that_crashes_on_start_ends_the_run_with_exit_4_and_one_clear_line(tmp_path):
+    (tmp_path / "crashing_stage.py").write_text(
+        "def factory(scenario):\n    raise RuntimeError('this planner cannot start')\n")
+    (tmp_path / "stages.json").write_text(json.dumps({"stages": {"planner": "crashing_stage:factory"}}))
+    proc = subprocess.run([sys.executable, "-m", "cvxnav", "run", "--quiet", "--stages", "stages.json",
+                           "--out", "run.json"], cwd=tmp_path, capture_output=True, text=True, timeout=WAIT_S)
+    assert proc.returncode == 4, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("cvxnav: error: stage planner keeps crashing (5 exits within 60 s, last code 1)")
+    assert "RuntimeError: this planner cannot start" in last
+    assert proc.stderr.count("stage planner restarted") == 4
+    assert "Traceback" not in last
+    assert not (tmp_path / "run.json").exists()

@@ -1,0 +1,138 @@
+"""The sim's watchdogs: it brakes when a stage's token disappears, and never drives a path through a known obstacle."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import replace
+
+import numpy as np
+
+from cvxnav.geometry import Ellipse
+from schemas.messages import Ellipsoids, Header, SmoothPath
+from schemas.scenario import Scenario, bundled_scenario
+from services.convert import ellipse_to_msg
+from sim.guard import PathGuard
+from sim.service import SimConfig, SimCore
+
+PAPER = bundled_scenario()
+
+
+def open_field() -> Scenario:
+    """The paper's car heading east on an empty map, its goal 20 m ahead."""
+    doc = json.loads(PAPER.model_dump_json())
+    doc.update(name="open", start={"x": 0.0, "y": 0.0, "theta": 0.0}, goals=[[20.0, 0.0]], obstacles=[],
+               bounds={"min": [-5.0, -10.0], "max": [25.0, 10.0]})
+    return Scenario.model_validate(doc)
+
+
+def path(core: SimCore, points, *, plan_id: int = 1) -> SmoothPath:
+    """An answer to the newest scan the core has sent."""
+    return SmoothPath(header=Header(stamp_s=core.t_s, seq=0), scan_seq=core.scan_seq, status="ok", goal_index=0,
+                      points=[tuple(p) for p in points], max_curvature=0.0, min_level=2.0, plan_id=plan_id)
+
+
+def straight(x0: float = 0.0, x1: float = 20.0, *, y: float = 0.0) -> np.ndarray:
+    xs = np.linspace(x0, x1, 401)
+    return np.column_stack([xs, np.full_like(xs, y)])
+
+
+def grown(*, center, radius: float, scan_seq: int = 0) -> Ellipsoids:
+    msg = ellipse_to_msg(Ellipse.circle(center=center, radius=radius), group=0, cluster_id=7)
+    return Ellipsoids(header=Header(stamp_s=0.0, seq=0), scan_seq=scan_seq, inflation_m=PAPER.inflation_m,
+                      ellipsoids=[msg])
+
+
+def drive(core: SimCore, steps: int) -> list[float]:
+    speeds = []
+    for _ in range(steps):
+        core.advance()
+        speeds.append(core.state.speed_mps)
+    return speeds
+
+
+def test_a_lost_planner_token_brakes_the_car_to_rest_within_its_limits_until_a_fresh_plan():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    assert core.accept(path(core, straight())) is None
+    cruising = drive(core, 40)[-1]
+    assert cruising > 0.5
+
+    core.stage_lost("planner")
+    late = path(core, straight(core.state.x_m), plan_id=2)  # in flight when the stage died
+    braking = [cruising] + drive(core, 30)
+    dv = np.diff(braking)
+    decel = core.limits.max_decel_mps2
+    assert np.all(dv <= 1e-12) and np.all(dv >= -decel * core.config.dt_s - 1e-9)  # slowing, within the limit
+    steps_to_stop = math.ceil(cruising / (decel * core.config.dt_s))
+    assert max(braking[steps_to_stop + 1:]) == 0.0
+
+    assert core.accept(late) is None  # an answer while the stage is down is not driven on
+    assert max(drive(core, 10)) == 0.0
+    core.stage_back("planner")
+    assert core.accept(late) is None  # nor an answer to a scan sent before the loss
+    assert max(drive(core, 10)) == 0.0
+
+    core.sense()
+    assert core.accept(path(core, straight(core.state.x_m), plan_id=3)) is None  # fresh: answers a new scan
+    assert drive(core, 20)[-1] > 0.3
+
+
+def test_scan_hits_taken_while_sensing_is_down_reach_it_when_it_is_back():
+    doc = json.loads(open_field().model_dump_json())
+    doc["obstacles"] = [{"type": "circle", "center": [3.0, 0.0], "radius": 0.5},
+                        {"type": "circle", "center": [-3.0, 0.0], "radius": 0.5}]
+    core = SimCore(scenario=Scenario.model_validate(doc))
+    core.stage_lost("sensing")
+    _, missed = core.sense()  # facing east: the obstacle at (3, 0)
+    assert missed.points
+    core.stage_back("sensing")
+    core.state = replace(core.state, theta_rad=math.pi)  # facing west: only the one at (-3, 0) is in view
+    drive(core, core.steps_per_scan)
+    _, resent = core.sense()
+    assert set(missed.points) <= set(resent.points)
+    drive(core, core.steps_per_scan)
+    _, again = core.sense()
+    assert set(missed.points) <= set(again.points)  # until the pipeline answers one of the scans that carry them
+    core.accept(SmoothPath(header=Header(stamp_s=core.t_s, seq=0), scan_seq=again.header.seq, status="no_path",
+                           goal_index=0, points=[], max_curvature=0.0, min_level=0.0))
+    drive(core, core.steps_per_scan)
+    _, after = core.sense()
+    assert after.points and not set(missed.points) & set(after.points)
+
+
+def test_a_path_through_a_known_ellipse_is_not_driven_and_says_why():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    core.know(grown(center=(8.0, 0.0), radius=1.5))
+    reason = core.accept(path(core, straight()))
+    assert reason is not None and "cluster 7" in reason
+    x, y = map(float, re.search(r"near \(([-\d.]+), ([-\d.]+)\)", reason).groups())
+    assert abs(x - 8.0) <= 0.1 and y == 0.0
+    assert max(drive(core, 40)) == 0.0
+
+    around = [(0.0, 0.0), (4.0, 0.0), (8.0, 3.0), (12.0, 0.0), (20.0, 0.0)]
+    core.sense()
+    assert core.accept(path(core, around, plan_id=2)) is None
+    assert drive(core, 40)[-1] > 0.5
+
+
+def test_newer_obstacles_across_the_path_being_driven_stop_the_car():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    core.accept(path(core, straight()))
+    drive(core, 40)
+    assert core.know(grown(center=(15.0, 0.0), radius=1.0, scan_seq=1)) is not None
+    assert drive(core, 40)[-1] == 0.0
+
+
+def test_the_guard_lets_a_robot_inside_a_grown_ellipse_leave_it_but_not_go_deeper():
+    guard = PathGuard()
+    guard.know(grown(center=(0.0, 0.0), radius=2.0))
+    start = (1.8, 0.0)  # level 0.9: closer to the obstacle than the full margin
+    assert guard.check([start, (4.0, 0.0)], start=start) is None
+    assert "level" in guard.check([start, (1.0, 0.0), (4.0, 0.0)], start=start)
+    assert guard.check([(3.0, 0.0), (3.0, 5.0)], start=(3.0, 0.0)) is None
+    assert guard.check([(3.0, -3.0), (3.0, 3.0), (1.9, 3.0)], start=(3.0, -3.0)) is None
+    assert guard.check([(-3.0, 0.5), (3.0, 0.5)], start=(-3.0, 0.5)) is not None  # a chord through it
