@@ -53,13 +53,16 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     from cvxnav.runtime import install_signal_handlers
     from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
-    from services.monitor.stage import monitor_targets, run_monitor
+    from services.monitor.stage import ViewerError, monitor_targets, run_monitor
 
     stop = threading.Event()
     install_signal_handlers(stop)
     targets = monitor_targets(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url)
-    run_monitor(session_config=zenoh_config_from_args(args), prefix=args.prefix or default_prefix(robot_id=args.robot_id),
-                targets=targets, stop_event=stop)
+    try:
+        run_monitor(session_config=zenoh_config_from_args(args),
+                    prefix=args.prefix or default_prefix(robot_id=args.robot_id), targets=targets, stop_event=stop)
+    except ViewerError as error:
+        raise CliError(str(error)) from None
     return EXIT_OK
 
 
