@@ -154,6 +154,12 @@ def client_config(*, cert_dir: Path, name: str, connect: Sequence[str]) -> dict:
     }
 
 
+def missing_files(*, cert_dir: Path, names: Sequence[str]) -> list[Path]:
+    """What a run with the router and these clients needs from ``cert_dir`` (CA, certificates, keys) but lacks."""
+    needed = [cert_dir / "ca.pem"] + [cert_dir / f"{name}.{ext}" for name in (ROUTER, *names) for ext in ("pem", "key")]
+    return [path for path in needed if not path.is_file()]
+
+
 def write_deployment(*, out_dir: Path, router_hosts: Sequence[str] = DEFAULT_ROUTER_HOSTS, port: int = 7447,
                      key_prefix: str = "cvxnav", names: Sequence[str] | None = None) -> list[Path]:
     """CA, router and per-name certificates, and a ready Zenoh config per name, into ``out_dir``."""

@@ -54,13 +54,16 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     from cvxnav.runtime import install_signal_handlers
     from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
-    from services.monitor.stage import monitor_targets, run_monitor
+    from services.monitor.stage import ViewerError, monitor_targets, run_monitor
 
     stop = threading.Event()
     install_signal_handlers(stop)
     targets = monitor_targets(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url)
-    run_monitor(session_config=zenoh_config_from_args(args), prefix=args.prefix or default_prefix(robot_id=args.robot_id),
-                targets=targets, stop_event=stop)
+    try:
+        run_monitor(session_config=zenoh_config_from_args(args),
+                    prefix=args.prefix or default_prefix(robot_id=args.robot_id), targets=targets, stop_event=stop)
+    except ViewerError as error:
+        raise CliError(str(error)) from None
     return EXIT_OK
 
 
@@ -87,18 +90,21 @@ def _cmd_service(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     import time
 
-    from cvxnav.run import PipelineError, RunError, RunOptions, load_stages, run_pipeline, summary
+    from cvxnav.run import PipelineError, RunError, RunOptions, load_stages, prepare_tls, run_pipeline, summary
 
     scenario = _load(args.scenario)
     try:
         stages = load_stages(args.stages)
+        options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
+                             time_limit_s=args.timeout_s, stages=stages, robot_id=args.robot_id,
+                             noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
+                             monitor_args=_monitor_args(args), connect=tuple(args.connect),
+                             listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
+                             record_messages=args.record_messages)
+        if prepare_tls(options):
+            print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
         raise CliError(str(error)) from None
-    options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
-                         time_limit_s=args.timeout_s, stages=stages, robot_id=args.robot_id,
-                         noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
-                         monitor_args=_monitor_args(args), listen=tuple(args.listen),
-                         record_messages=args.record_messages)
     started = time.monotonic()
     try:
         code, result, restarts = run_pipeline(options=options, scenario=scenario)
@@ -113,7 +119,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
-    """`cvxnav service monitor` options for `run --record/--viewer/--connect`; None: no monitor."""
+    """`cvxnav service monitor` options for `run --record/--viewer/--viewer-url`; None: no monitor."""
     from services.monitor.stage import monitor_arguments
 
     if args.record is None and not args.viewer and args.viewer_url is None:
@@ -262,14 +268,21 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record", type=Path, default=None, metavar="FILE.rrd",
                      help="start the monitor stage and save a rerun recording")
     run.add_argument("--viewer", action="store_true", help="start the monitor stage and spawn a rerun viewer")
-    run.add_argument("--connect", dest="viewer_url", default=None, metavar="URL",
-                     help="start the monitor stage and stream to a rerun viewer at URL "
+    run.add_argument("--viewer-url", default=None, metavar="URL",
+                     help="start the monitor stage and stream to a rerun viewer or server at URL "
                           "(e.g. rerun+http://127.0.0.1:9876/proxy)")
     run.add_argument("--record-messages", type=Path, default=None, metavar="FILE.mcap",
                      help="record every message of the run (key, encoding, payload, receive time) as MCAP")
-    run.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                     help="let outside processes join the run's Zenoh mesh here, e.g. tcp/127.0.0.1:7447 "
-                          "(repeatable)")
+    network = run.add_argument_group("zenoh")
+    network.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
+                         help="every process of the run also connects here, e.g. a router others reach: "
+                              "tcp/HOST:7447 (repeatable)")
+    network.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
+                         help="the run (under --tls: its router) also listens here for cvxnav status or a monitor "
+                              "(repeatable)")
+    network.add_argument("--tls", type=Path, default=None, metavar="DIR",
+                         help="mutual TLS + access control with the certificates of `cvxnav certs --out DIR`; "
+                              "made there first when DIR does not exist")
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")

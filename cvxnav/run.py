@@ -1,12 +1,23 @@
 """`cvxnav run` and `cvxnav service`: every stage its own OS process, peered over Zenoh on loopback.
 
 `run` supervises: it picks free loopback ports, starts each pipeline stage as
-`python -m cvxnav service NAME` (or the external command a `stages` config names), every process
-listening on its own port and connecting to all the others' with multicast scouting off (a full mesh
-on 127.0.0.1: no router, no stray sessions from the LAN), waits until every stage's liveliness token is
-up, then starts the sim. It follows the sim's state and paths for the progress bar, and when the sim
-exits (it writes run.json itself) prints the summary and stops every child: SIGTERM, then SIGKILL
-after a grace period.
+`python -m cvxnav service NAME --config FILE` (or the external command a `stages` config names), every
+process listening on its own port and connecting to all the others' with multicast scouting off (a
+full mesh on 127.0.0.1: no router, no stray sessions from the LAN), waits until every stage's
+liveliness token is up, then starts the sim. It follows the sim's state and paths for the progress
+bar, and when the sim exits (it writes run.json itself) prints the summary and stops every child:
+SIGTERM, then SIGKILL after a grace period.
+
+Each child's Zenoh settings are a config file the supervisor writes into the run's log directory.
+`connect` endpoints are added to every process of the run (a router there relays the whole run to
+`cvxnav status` or a monitor elsewhere), `listen` endpoints to the supervisor's own session (a client
+connecting there hears the whole mesh).
+
+With `tls_dir` the run is the secure deployment on one machine: the supervisor's session is the
+router of `cvxnav certs` (mutual TLS, access control by certificate name) on a free loopback port
+plus the `listen` endpoints, and every stage is a TLS client of it presenting its own certificate
+from `tls_dir`. Nothing listens in plain TCP; a session without a certificate of that CA gets no
+link, one whose certificate names no stage gets a link that carries nothing.
 
 A pipeline stage (or the monitor) that exits during the run is restarted on the same port, after a
 backoff that doubles with each recent restart (`RunOptions.restart_backoff_s`, capped at
@@ -20,12 +31,11 @@ one directory per stage, which outlives the process. The sim is not restarted: i
 A stage is swapped by naming, in a JSON `stages` file, either a Python entry point
 `"module:factory"` (called with the scenario, returning a StageCore), or
 `{"command": ["prog", "arg", ...]}`: any process that speaks the stage's keys. Its arguments may use
-`{listen}`, `{connect}` (comma-separated endpoints), `{prefix}`, `{scenario}` (a file path) and
+`{config}` (its Zenoh config file, the only complete one under TLS), `{listen}`, `{connect}`
+(comma-separated endpoints; under TLS `{listen}` is empty), `{prefix}`, `{scenario}` (a file path) and
 `{state_dir}` (the stage's own directory for state that must survive a restart).
 
-The supervisor's own session is a peer of every stage. `--listen EP` makes it listen on EP as well,
-so an outside process (`cvxnav status --connect EP`, a test, a recorder elsewhere) can join the run's
-mesh; multicast stays off, Zenoh's gossip tells the newcomer where the stages are.
+The supervisor's own session is a peer of every stage (under TLS, their router).
 `--record-messages FILE` has that session record every message under the prefix (`cvxnav.record`).
 """
 
@@ -48,9 +58,10 @@ from typing import Any, Protocol, runtime_checkable
 
 import zenoh
 
+from cvxnav.certs import client_config, missing_files, pipeline_names, router_config, write_deployment
 from cvxnav.record import MessageRecorder
 from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageCore, install_signal_handlers, run_stage
-from cvxnav.zenoh_config import build_zenoh_config
+from cvxnav.zenoh_config import config_from_doc, endpoints_config
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
@@ -225,7 +236,9 @@ class RunOptions:
     stop_grace_s: float = 5.0
     show_progress: bool = True
     monitor_args: tuple[str, ...] | None = None  # start the rerun monitor with these service options
-    listen: tuple[str, ...] = ()  # extra endpoints the supervisor's session listens on
+    connect: tuple[str, ...] = ()  # every process of the run also connects to these Zenoh endpoints
+    listen: tuple[str, ...] = ()  # the supervisor's session (under TLS: the run's router) also listens here
+    tls_dir: Path | None = None  # mutual TLS + access control with the certificates of `cvxnav certs` here
     record_messages: Path | None = None  # MCAP file of every message under the prefix
     # A stage that exits is restarted after restart_backoff_s, doubled for each of its restarts within
     # restart_window_s, at most restart_backoff_max_s; more than max_restarts of them end the run.
@@ -233,6 +246,11 @@ class RunOptions:
     restart_backoff_max_s: float = 5.0
     max_restarts: int = 4
     restart_window_s: float = 60.0
+
+    @property
+    def process_names(self) -> list[str]:
+        """Every process the run starts, in start order."""
+        return list(PIPELINE) + (["monitor"] if self.monitor_args is not None else []) + ["sim"]
 
 
 @dataclass(frozen=True)
@@ -255,6 +273,51 @@ class _Progress:
         return max(0, len(self.plan_ids) - 1)
 
 
+def prepare_tls(options: RunOptions) -> bool:
+    """Check `options.tls_dir` has every certificate the run needs; make a deployment there if it does not exist.
+
+    True when the certificates were made now. Raises RunError naming what is missing, and for
+    `connect` endpoints (the run's stages are clients of its own router only).
+    """
+    if options.tls_dir is None:
+        return False
+    if options.connect:
+        raise RunError("--connect cannot be combined with --tls: under TLS the stages are clients of the run's own "
+                       "router; let others join it with --listen tls/HOST:PORT")
+    created = not options.tls_dir.exists()
+    if created:
+        write_deployment(out_dir=options.tls_dir)
+    missing = missing_files(cert_dir=options.tls_dir, names=options.process_names)
+    if missing:
+        raise RunError(f"{options.tls_dir}: missing {', '.join(path.name for path in missing)} "
+                       f"(make them with: cvxnav certs --out {options.tls_dir})")
+    return created
+
+
+def plain_layout(options: RunOptions) -> tuple[dict, dict[str, dict]]:
+    """The supervisor's and each process's Zenoh config: a full mesh on free loopback ports."""
+    names = options.process_names
+    ports = free_ports(len(names) + 1)
+    endpoints = {name: f"tcp/127.0.0.1:{port}" for name, port in zip(names, ports)}
+    own = f"tcp/127.0.0.1:{ports[-1]}"
+    session = endpoints_config(listen=[own, *options.listen], connect=[*endpoints.values(), *options.connect])
+    children = {name: endpoints_config(listen=[endpoint], connect=[*(ep for other, ep in endpoints.items()
+                                                                       if other != name), own, *options.connect])
+                for name, endpoint in endpoints.items()}
+    return session, children
+
+
+def tls_layout(options: RunOptions) -> tuple[dict, dict[str, dict]]:
+    """The supervisor as the TLS + access-control router, each process a client with its own certificate."""
+    assert options.tls_dir is not None
+    cert_dir = options.tls_dir.resolve()
+    (port,) = free_ports(1)
+    router = f"tls/127.0.0.1:{port}"  # 127.0.0.1 is in the router certificate's subjectAltName
+    session = router_config(cert_dir=cert_dir, listen=[router, *options.listen], names=pipeline_names())
+    children = {name: client_config(cert_dir=cert_dir, name=name, connect=[router]) for name in options.process_names}
+    return session, children
+
+
 class Supervisor:
     """Starts, watches, restarts and stops the stage processes of one run."""
 
@@ -262,32 +325,29 @@ class Supervisor:
         self.options = options
         self.scenario = scenario
         self.prefix = default_prefix(robot_id=options.robot_id)
-        names = list(PIPELINE) + ["sim"] + (["monitor"] if options.monitor_args is not None else [])
-        ports = free_ports(len(names) + 1)
-        self.endpoints = {name: f"tcp/127.0.0.1:{port}" for name, port in zip(names, ports)}
-        self.own_endpoint = f"tcp/127.0.0.1:{ports[-1]}"
+        self.session_doc, self.child_docs = (tls_layout if options.tls_dir else plain_layout)(options)
         self.children: dict[str, Child] = {}  # the newest process of each stage
         self.restarts: list[Restart] = []
         self._restart_due: dict[str, float] = {}  # stage -> monotonic time its restart is due
         self.log_dir = Path(tempfile.mkdtemp(prefix="cvxnav-run-"))
         self.state_dir = self.log_dir / "state"
 
-    def _others(self, name: str) -> list[str]:
-        return [ep for other, ep in self.endpoints.items() if other != name] + [self.own_endpoint]
+    def _config_file(self, name: str) -> Path:
+        path = self.log_dir / f"{name}.json5"
+        path.write_text(json.dumps(self.child_docs[name], indent=1) + "\n", encoding="utf-8")
+        return path
 
     def _command(self, name: str) -> list[str]:
-        listen, connect = self.endpoints[name], self._others(name)
+        doc, config = self.child_docs[name], str(self._config_file(name))
         scenario_arg = str(self.options.scenario_path) if self.options.scenario_path else ""
         state_dir = str(self.state_dir / name)
         choice = self.options.stages.get(name)
         if choice is not None and choice.command is not None:
-            fields = dict(listen=listen, connect=",".join(connect), prefix=self.prefix, scenario=scenario_arg,
+            fields = dict(config=config, listen=",".join(doc.get("listen", {}).get("endpoints", [])),
+                          connect=",".join(doc["connect"]["endpoints"]), prefix=self.prefix, scenario=scenario_arg,
                           state_dir=state_dir)
             return [arg.format(**fields) for arg in choice.command]
-        cmd = [sys.executable, "-m", "cvxnav", "service", name, "--listen", listen, "--robot-id",
-               self.options.robot_id]
-        for endpoint in connect:
-            cmd += ["--connect", endpoint]
+        cmd = [sys.executable, "-m", "cvxnav", "service", name, "--config", config, "--robot-id", self.options.robot_id]
         if self.options.scenario_path:
             cmd += ["--scenario", scenario_arg]
         if name in PIPELINE:
@@ -407,12 +467,10 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     supervisor = Supervisor(options=options, scenario=scenario)
     progress = _Progress()
     time_limit_s = options.time_limit_s or default_time_limit_s(scenario)
-    config = build_zenoh_config(listen=[supervisor.own_endpoint, *options.listen],
-                                connect=[ep for ep in supervisor.endpoints.values()])
     recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
                 if options.record_messages is not None else None)
     try:
-        with zenoh.open(config) as session:
+        with zenoh.open(config_from_doc(supervisor.session_doc)) as session:
             if recorder is not None:
                 recorder.subscribe(session)  # before any stage starts: the recording misses nothing
 

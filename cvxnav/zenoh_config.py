@@ -42,6 +42,17 @@ def build_zenoh_config(
     return config
 
 
+def endpoints_config(*, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: Mode = "peer") -> dict:
+    """A whole Zenoh config as a document (for a file a child process reads): these endpoints, no scouting."""
+    return {"mode": mode, "listen": {"endpoints": list(listen)}, "connect": {"endpoints": list(connect)},
+            "scouting": {"multicast": {"enabled": False}}}
+
+
+def config_from_doc(doc: dict) -> zenoh.Config:
+    """The session config for a document like ``endpoints_config`` or ``cvxnav.certs`` returns."""
+    return zenoh.Config.from_json5(json.dumps(doc))
+
+
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument(

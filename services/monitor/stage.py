@@ -24,6 +24,9 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import shutil
+import socket
+import sysconfig
 import threading
 import time
 from collections.abc import Sequence
@@ -55,11 +58,16 @@ APPLICATION_ID = "cvxnav"
 TIMELINE = "sim_time"
 QUEUE_CAPACITY = 20_000
 TRAIL_MAX_POINTS = 5_000
+VIEWER_PORT = 9876  # where a spawned viewer listens (rerun's default; a viewer already there is reused)
 
 
 def disable_rerun_analytics() -> None:
     """Turn rerun's usage analytics off in this process and its children (the viewer it spawns)."""
     os.environ.setdefault("CI", "1")
+
+
+class ViewerError(Exception):
+    """The viewer asked for cannot be shown and nothing else would receive the recording: one line."""
 
 
 @dataclass(frozen=True)
@@ -85,13 +93,36 @@ def open_recording(*, targets: RerunTargets, recording_id: str | None = None):
     if targets.record_path is not None:
         sinks.append(rr.FileSink(str(targets.record_path)))
     if targets.spawn_viewer:
-        recording.spawn(connect=False)
-        sinks.append(rr.GrpcSink())
+        try:
+            rr.spawn(port=VIEWER_PORT, connect=False, executable_path=viewer_executable(), recording=recording)
+            reason = "" if viewer_listening() else "it exited (no display?)"
+        except RuntimeError as error:  # no `rerun` executable
+            reason = str(error).splitlines()[0]
+        if not reason:
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"))
+        elif targets.record_path is None and targets.viewer_url is None:
+            raise ViewerError(f"the rerun viewer did not start: {reason}; use --record or --viewer-url instead")
+        else:
+            logger.warning("monitor: the rerun viewer did not start: %s; sending to the other targets only", reason)
     if targets.viewer_url is not None:
         sinks.append(rr.GrpcSink(targets.viewer_url))
     if sinks:
         recording.set_sinks(*sinks, default_blueprint=blueprint())
     return recording
+
+
+def viewer_listening(*, timeout_s: float = 1.0) -> bool:
+    """Whether the spawned viewer accepts connections (one that cannot open a window exits at once)."""
+    try:
+        socket.create_connection(("127.0.0.1", VIEWER_PORT), timeout=timeout_s).close()
+    except OSError:
+        return False
+    return True
+
+
+def viewer_executable() -> str | None:
+    """The `rerun` that rerun-sdk installed beside this Python (an un-activated venv is not on PATH), else PATH's."""
+    return shutil.which("rerun", path=sysconfig.get_path("scripts")) or shutil.which("rerun")
 
 
 def blueprint():
@@ -287,7 +318,10 @@ def run_monitor(
                 break
         token.undeclare()
         subscriber.undeclare()
-    recording.flush(timeout_sec=10.0)
+    try:
+        recording.flush(timeout_sec=10.0)
+    except RuntimeError as error:  # a viewer that never came up or went away; the other sinks have their data
+        logger.warning("monitor: %s", str(error).splitlines()[0])
     recording.disconnect()
     total = sum(counts.logged.values())
     logger.info("monitor logged %d messages (%d rejected, %d dropped)", total, sum(counts.rejected.values()),

@@ -120,7 +120,9 @@ def killed_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, 
     try:
         children = wait_for(lambda: (found := stage_processes(proc.pid)) and "sim" in found and found,
                             what="the sim to start")
-        config = build_zenoh_config(connect=[argv[argv.index("--listen") + 1] for _, argv in children.values()])
+        config = build_zenoh_config(connect=[endpoint for _, argv in children.values() for endpoint in
+                                             json.loads(Path(argv[argv.index("--config") + 1]).read_text())
+                                             ["listen"]["endpoints"]])
         # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
         config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
         observer = Observer()

@@ -1,14 +1,24 @@
-"""`cvxnav run --record`: the monitor stage mirrors a real pipeline run into an .rrd, read back with rerun."""
+"""The monitor stage mirrors a real pipeline run into rerun: a recording (`cvxnav run --record`, with a
+`--viewer` that cannot open a window), and a rerun server elsewhere (`cvxnav run --viewer-url`) while
+`cvxnav status` watches the same run through a router the run joined with `--connect`. Both are read
+back with rerun's own reader.
+"""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cvxnav.run import free_ports, stop_processes
 from schemas.files import RunFile
 
 pytestmark = pytest.mark.slow
@@ -23,10 +33,15 @@ EXPECTED_STATIC = ("/world/obstacles", "/world/bounds", "/goals")
 
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
-    """One lockstep run of the paper scenario with the monitor recording (the process, its directory)."""
+    """One lockstep run of the paper scenario with the monitor recording (the process, its directory).
+
+    It also asks for a viewer, with no display: the viewer exits at once, and the recording must still
+    be whole (the monitor once hung on flushing to the missing viewer and was killed mid-file).
+    """
     cwd = tmp_path_factory.mktemp("recorded")
-    proc = subprocess.run([sys.executable, "-m", "cvxnav", "run", "--quiet", "--record", "run.rrd", "--out", "run.json"],
-                          cwd=cwd, capture_output=True, text=True, timeout=180)
+    env = {name: value for name, value in os.environ.items() if name not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "cvxnav", "run", "--quiet", "--record", "run.rrd", "--viewer",
+                           "--out", "run.json"], cwd=cwd, capture_output=True, text=True, timeout=180, env=env)
     return proc, cwd
 
 
@@ -73,3 +88,66 @@ def test_recording_mirrors_the_pipeline_on_sim_time(recorded_run):
     robot_rows = sum(chunk.num_rows for chunk in chunks["/sim/robot"])
     scans = sum(chunk.num_rows for chunk in chunks["/sensing/scan"])
     assert robot_rows >= scans
+
+
+def _wait_listening(port: int, process: subprocess.Popen, *, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            assert process.poll() is None and time.monotonic() < deadline, f"nothing listens on {port}"
+            time.sleep(0.2)
+
+
+def _status(router_ep: str) -> dict:
+    proc = subprocess.run([sys.executable, "-m", "cvxnav", "status", "--connect", router_ep, "--mode", "client",
+                           "--window-s", "1.5", "--json"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    return {stage["name"]: stage for stage in json.loads(proc.stdout)["stages"]}
+
+
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # `rerun --save` writes a stream without one
+def test_run_streams_to_a_rerun_server_and_status_watches_through_the_router(tmp_path):
+    """A headless rerun server (`rerun --save`, the binary of rerun-sdk) receives the run over gRPC."""
+    rerun_bin = Path(sys.executable).with_name("rerun")
+    router_port, rerun_port = free_ports(2)
+    router_ep = f"tcp/127.0.0.1:{router_port}"
+    env = {**os.environ, "CI": "1"}  # no analytics from the rerun server either
+    with open(tmp_path / "rerun.log", "wb") as log:
+        server = subprocess.Popen([str(rerun_bin), "--save", str(tmp_path / "live.rrd"), "--bind", "127.0.0.1",
+                                   "--port", str(rerun_port)], stdout=log, stderr=subprocess.STDOUT, env=env)
+    with open(tmp_path / "router.log", "wb") as log:
+        router = subprocess.Popen([sys.executable, "-m", "cvxnav", "router", "--listen", router_ep], stdout=log,
+                                  stderr=subprocess.STDOUT)
+    processes = [server, router]
+    try:
+        _wait_listening(rerun_port, server)
+        _wait_listening(router_port, router)
+        with open(tmp_path / "run.log", "wb") as log:
+            run = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json",
+                                    "--connect", router_ep,
+                                    "--viewer-url", f"rerun+http://127.0.0.1:{rerun_port}/proxy"],
+                                   cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+        processes.append(run)
+        report: dict = {}
+        while run.poll() is None and not all(report.get(name, {}).get("alive") for name in ("sim", "monitor")):
+            report = _status(router_ep)  # from outside the run's mesh: only through the router
+        assert run.wait(timeout=180) == 0, (tmp_path / "run.log").read_text()[-2000:]
+        assert report["sim"]["alive"] and report["monitor"]["alive"], report
+        for name in ("sensing", "ellipsoids", "planner", "smoother"):
+            assert report[name]["alive"], report
+        assert report["sim"]["rates_hz"]["scan"] > 0.0
+        server.send_signal(signal.SIGINT)  # the server has written everything it received; let it close the file
+        server.wait(timeout=30)
+    finally:
+        stop_processes(processes, grace_s=10.0)
+    run_file = RunFile.read(tmp_path / "run.json")
+    assert run_file.status == "reached"
+    chunks = _chunks_by_entity(tmp_path / "live.rrd")
+    for entity in (*EXPECTED_STATIC, *EXPECTED_OVER_TIME):
+        assert entity in chunks, f"{entity} missing; have {sorted(chunks)}"
+    assert sum(chunk.num_rows for chunk in chunks["/sim/robot"]) >= 10
+    times_s = _sim_times_s(chunks["/smoother/path"])
+    assert times_s[-1] >= 0.8 * run_file.trajectory[-1][0]  # streamed to the end of the run

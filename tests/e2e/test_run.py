@@ -135,8 +135,10 @@ def test_swapped_smoother_run_reaches_its_goal(tmp_path):
 @pytest.mark.parametrize(
     ("content", "args"),
     [('{"format": "cvxnav.scenario/1", "name": "x"', []),
-     (None, ["--stages", "missing-stages.json"])],
-    ids=["bad-scenario", "missing-stages-file"],
+     (None, ["--stages", "missing-stages.json"]),
+     (None, ["--tls", "."]),  # a directory without certificates
+     (None, ["--tls", "certs", "--connect", "tcp/127.0.0.1:7447"])],
+    ids=["bad-scenario", "missing-stages-file", "tls-dir-without-certificates", "tls-with-connect"],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, content, args):
     target = []

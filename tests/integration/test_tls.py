@@ -11,7 +11,6 @@ import json
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -22,32 +21,15 @@ from cvxnav.certs import client_config, pipeline_names, router_config, write_dep
 from cvxnav.run import free_ports
 from schemas.messages import Clusters, Header, Pose2D, Scan, decode
 from schemas.wiring import default_prefix, key
+from tls_clients import INTRUDER, Inbox, open_session, outsider_configs
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0
 
 
-def _open(doc: dict) -> zenoh.Session:
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(doc)))
-
-
 def _scan(seq: int) -> str:
     return Scan(header=Header(stamp_s=0.1 * seq, seq=seq), pose=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0),
                 points=[(2.0, 0.0), (2.0, 0.1), (2.1, 0.05)]).model_dump_json()
-
-
-class Inbox:
-    def __init__(self) -> None:
-        self.samples: list[tuple[str, bytes]] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self.lock:
-            self.samples.append((str(sample.key_expr), sample.payload.to_bytes()))
-
-    def keys(self) -> list[str]:
-        with self.lock:
-            return [k for k, _ in self.samples]
 
 
 @pytest.fixture(scope="module")
@@ -56,42 +38,31 @@ def deployment(tmp_path_factory):
     ours = tmp_path_factory.mktemp("certs")
     theirs = tmp_path_factory.mktemp("other-ca")
     try:
-        write_deployment(out_dir=ours, names=(*pipeline_names(), "intruder"))  # intruder: signed, not allowed
+        write_deployment(out_dir=ours, names=(*pipeline_names(), INTRUDER))  # intruder: signed, not allowed
         write_deployment(out_dir=theirs)
     except Exception as error:  # pragma: no cover - only where the cryptography wheel is broken
         pytest.skip(f"cannot make certificates here: {error}")
     (port,) = free_ports(1)
     endpoint = f"tls/localhost:{port}"
     try:
-        router = _open(router_config(cert_dir=ours.resolve(), listen=[endpoint], names=pipeline_names()))
+        router = open_session(router_config(cert_dir=ours.resolve(), listen=[endpoint], names=pipeline_names()))
     except zenoh.ZError as error:
         pytest.skip(f"this zenoh wheel cannot open a TLS listener: {error}")
     yield ours.resolve(), theirs.resolve(), endpoint
     router.close()
 
 
-def _outsider_configs(ours: Path, theirs: Path, endpoint: str) -> dict[str, dict]:
-    no_cert = client_config(cert_dir=ours, name="sensing", connect=[endpoint])
-    tls = no_cert["transport"]["link"]["tls"]
-    del tls["connect_certificate"], tls["connect_private_key"]
-    other_ca = client_config(cert_dir=ours, name="sensing", connect=[endpoint])  # trusts our router...
-    other_ca["transport"]["link"]["tls"].update(  # ...but presents a "sensing" certificate from another CA
-        connect_certificate=str(theirs / "sensing.pem"), connect_private_key=str(theirs / "sensing.key"))
-    return {"no certificate": no_cert, "another CA": other_ca,
-            "valid certificate, name not allowed": client_config(cert_dir=ours, name="intruder", connect=[endpoint])}
-
-
 def test_only_pipeline_certificates_exchange_messages(deployment, tmp_path):
     ours, theirs, endpoint = deployment
     monitor_inbox = Inbox()
-    with _open(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
-            _open(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
+    with open_session(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
+            open_session(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
         monitor.declare_subscriber(f"{PREFIX}/**", monitor_inbox)
         outsiders: dict[str, tuple[zenoh.Session | None, Inbox]] = {}
-        for label, config in _outsider_configs(ours, theirs, endpoint).items():
+        for label, config in outsider_configs(ours, theirs, endpoint).items():
             inbox = Inbox()
             try:
-                session = _open(config)
+                session = open_session(config)
             except zenoh.ZError:
                 session = None  # refused at the handshake: nothing can pass
             else:
@@ -117,8 +88,8 @@ def test_only_pipeline_certificates_exchange_messages(deployment, tmp_path):
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         answers = Inbox()
-        with _open(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
-                _open(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
+        with open_session(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
+                open_session(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
             monitor.declare_subscriber(key(PREFIX, "clusters"), answers)
             deadline, seq = time.monotonic() + 60.0, 1
             while not answers.samples and time.monotonic() < deadline and stage.poll() is None:

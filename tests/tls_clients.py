@@ -1,0 +1,53 @@
+"""Sessions for the TLS tests: an inbox that records what a subscriber hears, and the outsiders' configs.
+
+Shared by tests/integration/test_tls.py (a bare TLS router) and tests/e2e/test_secure_run.py (a whole
+`cvxnav run --tls`): a client without a certificate, one presenting a certificate from another CA, and
+one with a valid certificate whose name is no stage.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import zenoh
+
+from cvxnav.certs import client_config
+
+INTRUDER = "intruder"  # a name the certificates are issued for, but that access control does not list
+
+
+def open_session(doc: dict) -> zenoh.Session:
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(doc)))
+
+
+class Inbox:
+    """A subscriber callback keeping every sample's key and payload."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[str, bytes]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.samples.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def keys(self) -> list[str]:
+        with self.lock:
+            return [k for k, _ in self.samples]
+
+
+def outsider_configs(ours: Path, theirs: Path, endpoint: str) -> dict[str, dict]:
+    """Client configs for the router at ``endpoint`` that must get nothing through (label -> config).
+
+    ``ours`` holds this deployment's certificates, including one for INTRUDER; ``theirs`` another CA's.
+    """
+    no_cert = client_config(cert_dir=ours, name="sensing", connect=[endpoint])
+    tls = no_cert["transport"]["link"]["tls"]
+    del tls["connect_certificate"], tls["connect_private_key"]
+    other_ca = client_config(cert_dir=ours, name="sensing", connect=[endpoint])  # trusts our router...
+    other_ca["transport"]["link"]["tls"].update(  # ...but presents a "sensing" certificate from another CA
+        connect_certificate=str(theirs / "sensing.pem"), connect_private_key=str(theirs / "sensing.key"))
+    return {"no certificate": no_cert, "another CA": other_ca,
+            "valid certificate, name not allowed": client_config(cert_dir=ours, name=INTRUDER, connect=[endpoint])}
