@@ -66,7 +66,8 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     Returns (vertices_normalised, shift, transform) with x = shift + transform · x_normalised.
     The set is degenerate when its spread across its principal axis is below `eps_m` (collinear,
     duplicate or single points); it is then replaced by its two extreme points along the principal
-    axis ⊕ {±eps e₁, ±eps e₂}, a set that contains the original points. The MVEE is affine-equivariant
+    axis ⊕ {±eps v₁, ±eps v₂}, v the principal axes, a set that contains the original points (a cross
+    along x and y instead would leave a band only eps/√2 wide about a diagonal line). The MVEE is affine-equivariant
     (MVEE(T P) = T MVEE(P)), so fitting in coordinates where the set has unit spread along both
     principal axes gives the same ellipse, and a 10 m × 2 mm set is as well conditioned as a disc.
     """
@@ -77,7 +78,7 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     if np.ptp(across) < eps_m:
         along = centred @ vt[0]
         ends = centred[[int(np.argmin(along)), int(np.argmax(along))]]
-        cross = eps_m * np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+        cross = eps_m * np.array([vt[0], -vt[0], vt[1], -vt[1]])
         centred = (ends[:, None, :] + cross[None, :, :]).reshape(-1, 2)
         shift = shift + centred.mean(axis=0)
         centred = centred - centred.mean(axis=0)

@@ -81,6 +81,15 @@ def test_degenerate_sets_give_thin_valid_ellipse(fit, points):
     assert e.semi_axes[0] <= 2.0 * extent + 1e-2
 
 
+def test_a_diagonal_sliver_thinner_than_the_fattening_is_contained():
+    """Three sensed points 0.7 mm off a 45° line (from a closed-loop run of field-25): the fattened
+    set must hold the middle one, whatever the line's direction."""
+    points = np.array([[8.54116664160529, 9.09906675978574], [8.548365774815917, 9.105636475188584],
+                       [8.61118252330341, 9.17641337263159]])
+    e = mvee_fast(points)
+    assert np.max(e.level(points)) <= 1.0 + CONTAIN_TOL
+
+
 def test_nearly_collinear_but_wide_enough_is_not_fattened():
     points = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 0.01], [0.0, 0.01]])
     e = mvee_fast(points)
