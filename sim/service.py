@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, one_line
+from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageInputError, one_line
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import (
     DecodeError,
@@ -59,6 +59,7 @@ from schemas.messages import (
 from schemas.messages import World as WorldMessage
 from schemas.scenario import Scenario
 from schemas.wiring import STAGES, alive_key, key, status_key
+from services.limits import Reach
 from sim.controller import GoalTracker, PurePursuit
 from sim.guard import PathGuard, ahead
 from sim.sensor import RangeSensor
@@ -314,6 +315,7 @@ class _Answers:
     statuses: zenoh.Subscriber
     status_pub: zenoh.Publisher  # the sim's own status
     max_payload_bytes: int
+    reach: Reach
     ellipsoids: zenoh.Subscriber
     alive: zenoh.Subscriber
     published_at: dict[int, float] = field(default_factory=dict)  # scan seq -> perf_counter
@@ -382,15 +384,31 @@ class _Answers:
         newest = None
         while (sample := self.ellipsoids.try_recv()) is not None:
             try:
-                message = decode(Ellipsoids, sample.payload.to_bytes(), encoding=str(sample.encoding))
-            except DecodeError:
-                continue  # the planner reports a bad message on its status; there is nothing to know here
+                message = self._decoded_ellipsoids(sample)
+            except (DecodeError, StageInputError) as error:
+                self._report(str(sample.key_expr), one_line(f"{sample.key_expr}: {error}"))
+                continue
             if newest is None or message.scan_seq >= newest.scan_seq:
                 newest = message
         if newest is not None:
             dropped = core.know(newest)
             if dropped is not None:  # the planner replans on the same ellipses: routine, not an error
                 logger.info("newer obstacles cross the path being driven; braking until the replan: %s", dropped)
+
+    def _decoded_ellipsoids(self, sample: zenoh.Sample) -> Ellipsoids:
+        """Ellipses the guard may trust as far as checks go: bounded, and answering a scan the sim sent.
+
+        The guard keeps the newest set by scan; a forged one numbered past every real scan would
+        otherwise blind it to the real obstacles for the rest of the run.
+        """
+        size = len(sample.payload)
+        if size > self.max_payload_bytes:
+            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self.max_payload_bytes}")
+        message = decode(Ellipsoids, sample.payload.to_bytes(), encoding=str(sample.encoding))
+        if message.scan_seq not in self.stamps:
+            raise DecodeError(f"answers scan {message.scan_seq}, which the sim never sent")
+        self.reach.check_ellipses(message.ellipsoids, what="ellipsoids")
+        return message
 
     def take(self, core: SimCore, answer: SmoothPath) -> None:
         """Hand the core an answer; if it will not drive on it, say why on the sim's status key."""
@@ -448,6 +466,7 @@ def run_sim(
             status_pub=session.declare_publisher(status_key(prefix, "sim"),
                                                  encoding=zenoh.Encoding(StageStatus.encoding())),
             max_payload_bytes=config.max_payload_bytes,
+            reach=Reach.of(scenario),
             ellipsoids=session.declare_subscriber(key(prefix, "ellipsoids")),
             alive=session.liveliness().declare_subscriber(alive_key(prefix, "*"), history=True),
         )
