@@ -4,7 +4,7 @@ Each cluster is covered by a few tight ellipses (`cover_points`), the ellipses w
 narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every ellipse is
 grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
 
-Fits are cached by cluster content: the sensing stage sends unchanged clusters byte-identical, and
+Fits, and the grown ellipses, are cached by cluster content: the sensing stage sends unchanged clusters byte-identical, and
 most of the map is unchanged from one scan to the next, so only new or grown clusters are refitted.
 
 A Clusters message holds at most as many points as the sensing stage remembers, all within the
@@ -53,19 +53,21 @@ class EllipsoidsConfig:
 class EllipsoidsStage:
     def __init__(self, *, config: EllipsoidsConfig) -> None:
         self.config = config
-        self._fits: OrderedDict[bytes, list[Ellipse]] = OrderedDict()
+        self._fits: OrderedDict[bytes, list[tuple[Ellipse, Ellipse]]] = OrderedDict()  # (fitted, grown) pieces
         self._seq = 0
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsStage:
         return cls(config=EllipsoidsConfig.from_scenario(scenario))
 
-    def _cover(self, points: np.ndarray) -> list[Ellipse]:
+    def _cover(self, points: np.ndarray) -> list[tuple[Ellipse, Ellipse]]:
+        """The cluster's cover, each piece with its grown ellipse (both cached by the points' content)."""
         digest = hashlib.blake2b(points.tobytes(), digest_size=16).digest()
         if digest in self._fits:
             self._fits.move_to_end(digest)
             return self._fits[digest]
-        fitted = cover_points(points, tolerance_m=self.config.tolerance_m, max_pieces=self.config.max_pieces)
+        fitted = [(piece, piece.grown(self.config.inflation_m)) for piece in
+                  cover_points(points, tolerance_m=self.config.tolerance_m, max_pieces=self.config.max_pieces)]
         self._fits[digest] = fitted
         while len(self._fits) > self.config.cache_size:
             self._fits.popitem(last=False)
@@ -84,10 +86,12 @@ class EllipsoidsStage:
             self.config.reach.check_points(points, what=f"cluster {cluster.cluster_id}")
             clouds.append((cluster.cluster_id, points))
         raw: list[Ellipse] = []
+        grown: list[Ellipse] = []
         cluster_ids: list[int] = []
         for cluster_id, points in clouds:
-            for ellipse in self._cover(points):
-                raw.append(ellipse)
+            for piece, piece_grown in self._cover(points):
+                raw.append(piece)
+                grown.append(piece_grown)
                 cluster_ids.append(cluster_id)
         labels = group_ellipses(raw, min_gap_m=self.config.min_gap_m)
         out = Ellipsoids(
@@ -95,8 +99,8 @@ class EllipsoidsStage:
             scan_seq=message.scan_seq,
             inflation_m=self.config.inflation_m,
             ellipsoids=[
-                ellipse_to_msg(ellipse.grown(self.config.inflation_m), group=int(label), cluster_id=cid)
-                for ellipse, label, cid in zip(raw, labels, cluster_ids)
+                ellipse_to_msg(ellipse, group=int(label), cluster_id=cid)
+                for ellipse, label, cid in zip(grown, labels, cluster_ids)
             ],
         )
         self._seq += 1
