@@ -45,7 +45,7 @@ _ROOT_TOL = 1e-6  # a quartic root this close to the unit circle is a real angle
 _BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding) is clear
 _ARC_PIECE_RAD = np.pi / 8  # Gauss–Legendre pieces for arc lengths
 _ARC_VERTEX_RAD = np.pi / 16  # polyline vertices of an arc in the route returned
-_BOUND_FACTORS = (1.05, 1.3, 2.0, np.inf)  # informed-ellipse bounds tried, × the straight distance
+_BOUND_FACTORS = (1.03, 1.1, 1.3, 2.0, np.inf)  # informed-ellipse bounds tried, × the straight distance
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(6)
 
 
@@ -112,12 +112,40 @@ def _quadratic_form_coef(K: FloatArray, e: FloatArray, const: FloatArray) -> Flo
     )
 
 
-def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Real roots θ (k, 4) of each degree-2 trigonometric polynomial, and which are real (k, 4).
+def _bracketed_root(g, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Roots of g (value and derivative at (θ, indices)) in brackets [lo, hi] with a sign change.
 
-    With z = e^{iθ}, z² times the polynomial is the quartic
-    (a₂ − i b₂)/2 z⁴ + (a₁ − i b₁)/2 z³ + a₀ z² + (a₁ + i b₁)/2 z + (a₂ + i b₂)/2;
-    its roots on the unit circle are the real roots, polished by Newton on the real function.
+    Newton steps that leave the bracket become bisections (safeguarded Newton), element by element.
+    """
+    lo, hi = lo.copy(), hi.copy()
+    every = np.arange(len(lo))
+    f_lo = g(lo, every)[0]
+    x = 0.5 * (lo + hi)
+    active = every
+    for _ in range(60):
+        xa, la, ha = x[active], lo[active], hi[active]
+        f, df = g(xa, active)
+        same = np.sign(f) == np.sign(f_lo[active])
+        la, ha = np.where(same, xa, la), np.where(same, ha, xa)
+        f_lo[active] = np.where(same, f, f_lo[active])
+        step = xa - f / np.where(df != 0.0, df, 1.0)
+        inside = (step >= np.minimum(la, ha)) & (step <= np.maximum(la, ha)) & (df != 0.0)
+        new = np.where(inside, step, 0.5 * (la + ha))
+        x[active], lo[active], hi[active] = new, la, ha
+        active = active[np.abs(new - xa) >= 1e-13]
+        if not len(active):
+            break
+    return x
+
+
+_GRID = 2.0 * np.pi * np.arange(128) / 128
+_GRID_BASIS = np.stack([np.ones(128), np.cos(_GRID), np.sin(_GRID), np.cos(2 * _GRID), np.sin(2 * _GRID)])
+
+
+def _companion_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """All real roots by the quartic in z = e^{iθ}: z² times the polynomial is
+    (a₂ − i b₂)/2 z⁴ + (a₁ − i b₁)/2 z³ + a₀ z² + (a₁ + i b₁)/2 z + (a₂ + i b₂)/2,
+    whose roots on the unit circle are the real roots (then polished by Newton on the real function).
     """
     a0, a1, b1, a2, b2 = (coef[:, k] for k in range(5))
     poly = np.stack([(a2 - 1j * b2) / 2, (a1 - 1j * b1) / 2, a0 + 0j, (a1 + 1j * b1) / 2, (a2 + 1j * b2) / 2], axis=1)
@@ -136,10 +164,44 @@ def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
     return np.mod(theta, 2.0 * np.pi), real
 
 
+def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Real roots θ (k, 4) of each degree-2 trigonometric polynomial, and which are real (k, 4).
+
+    Sign changes on a 128-point grid bracket the roots, refined by safeguarded Newton. Two roots r₁, r₂
+    in one grid step [t, t + h] make F(x) = (x − r₁)(x − r₂) F″(ξ)/2 there, so |F| ≤ max|F″| h²/2 at
+    both ends of the step (F″ is bounded by |a₁| + |b₁| + 4(|a₂| + |b₂|)); the few polynomials with
+    such a step (near-tangent crossings) take the companion-matrix route instead.
+    """
+    k = len(coef)
+    h = _GRID[1]
+    values = coef @ _GRID_BASIS
+    curvature = np.abs(coef[:, 1]) + np.abs(coef[:, 2]) + 4.0 * (np.abs(coef[:, 3]) + np.abs(coef[:, 4]))
+    small = np.abs(values) <= 0.5 * curvature[:, None] * h * h
+    hidden = np.any(small & np.roll(small, -1, axis=1), axis=1)
+    change = (np.sign(values) != np.sign(np.roll(values, -1, axis=1))) & ~hidden[:, None]
+    rows, cols = np.nonzero(change)
+    slot = np.arange(len(rows)) - np.searchsorted(rows, rows)
+    keep = slot < 4
+    rows, cols, slot = rows[keep], cols[keep], slot[keep]
+    theta = np.zeros((k, 4))
+    real = np.zeros((k, 4), dtype=bool)
+
+    def g(x, idx):
+        f, df = _trig(coef[rows[idx]], x[:, None])
+        return f[:, 0], df[:, 0]
+
+    theta[rows, slot] = _bracketed_root(g, _GRID[cols], _GRID[cols] + h)
+    real[rows, slot] = True
+    fallback = np.flatnonzero(hidden)
+    if len(fallback):
+        theta[fallback], real[fallback] = _companion_roots(coef[fallback])
+    return np.mod(theta, 2.0 * np.pi), real
+
+
 def _window_roots(
     D: FloatArray, phi: FloatArray, S: FloatArray, sign: float, lo: FloatArray, hi: FloatArray
 ) -> FloatArray:
-    """The root of g(θ) = D cos(θ − φ) − 1 + sign·√(nᵀSn) bracketed by [lo, hi] (safeguarded Newton)."""
+    """The root of g(θ) = D cos(θ − φ) − 1 + sign·√(nᵀSn) bracketed by [lo, hi]."""
     s11, s12, s22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
 
     def g(theta, k):
@@ -148,24 +210,7 @@ def _window_roots(
         dh = ((s22[k] - s11[k]) * c * s + s12[k] * (c * c - s * s)) / h
         return D[k] * np.cos(theta - phi[k]) - 1.0 + sign * h, -D[k] * np.sin(theta - phi[k]) + sign * dh
 
-    every = np.arange(len(D))
-    f_lo = g(lo, every)[0]
-    x = 0.5 * (lo + hi)
-    active = every
-    for _ in range(60):
-        xa, la, ha = x[active], lo[active], hi[active]
-        f, df = g(xa, active)
-        same = np.sign(f) == np.sign(f_lo[active])
-        la, ha = np.where(same, xa, la), np.where(same, ha, xa)
-        f_lo[active] = np.where(same, f, f_lo[active])
-        step = xa - f / np.where(df != 0.0, df, 1.0)
-        inside = (step >= np.minimum(la, ha)) & (step <= np.maximum(la, ha)) & (df != 0.0)
-        new = np.where(inside, step, 0.5 * (la + ha))
-        x[active], lo[active], hi[active] = new, la, ha
-        active = active[np.abs(new - xa) >= 1e-13]
-        if not len(active):
-            break
-    return x
+    return _bracketed_root(g, lo, hi)
 
 
 @dataclass
@@ -248,7 +293,8 @@ def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e:
 
 
 def _cuts(frames: _Frames, stack: EllipseStack, bounds_min: FloatArray, bounds_max: FloatArray, relevant: FloatArray):
-    """Where each relevant ellipse's boundary is crossed by another ellipse or a bound: (owner, θ)."""
+    """Where each relevant ellipse's boundary is crossed by another ellipse or a bound: (owner, θ);
+    and the pairs (i, j) of ellipses that may overlap (j may cover part of i)."""
     owners, thetas = [], []
     i, j = stack.near_pairs(frames.centers[relevant], frames.reach[relevant])
     i = relevant[i]
@@ -283,16 +329,19 @@ def _cuts(frames: _Frames, stack: EllipseStack, bounds_min: FloatArray, bounds_m
             thetas += [psi[hit] + half, psi[hit] - half]
     owner = np.concatenate(owners) if owners else np.zeros(0, dtype=int)
     theta = np.mod(np.concatenate(thetas), 2.0 * np.pi) if thetas else np.zeros(0)
-    order = np.lexsort((theta, owner))
-    return owner[order], theta[order]
+    return owner, theta, i, j
 
 
 class _Arcs:
     """Free and blocked arcs of each ellipse's boundary between consecutive cuts."""
 
-    def __init__(self, frames: _Frames, stack: EllipseStack, bounds_min, bounds_max, relevant: FloatArray) -> None:
+    def __init__(self, frames: _Frames, cuts, covered: FloatArray, bounds_min, bounds_max) -> None:
+        """`cuts` from `_cuts` for the ellipses `covered` (a mask); the others get no free arc."""
         m = len(frames.A)
-        self.owner, self.theta = _cuts(frames, stack, bounds_min, bounds_max, relevant)
+        owner, theta, pair_i, pair_j = cuts
+        order = np.lexsort((theta, owner))
+        self.owner, self.theta = owner[order], theta[order]
+        relevant = np.flatnonzero(covered)
         self.count = np.bincount(self.owner, minlength=m)
         self.first = np.concatenate([[0], np.cumsum(self.count)[:-1]])
         # One arc per cut (from it to the next, the last wrapping round), or the whole boundary.
@@ -309,16 +358,24 @@ class _Arcs:
             start[has] = self.theta[cut]
             span[has] = np.mod(self.theta[nxt] - start[has], 2.0 * np.pi)
             span[has & (span == 0.0)] = 2.0 * np.pi
-        middle = frames.point(arc_owner, _unit(start + 0.5 * span))
-        free = np.all((middle >= bounds_min) & (middle <= bounds_max), axis=1)
-        rows, cols = stack.near_pairs(middle, np.zeros(len(middle)))
-        other = cols != arc_owner[rows]
-        rows, cols = rows[other], cols[other]
-        u = np.einsum("kij,kj->ki", frames.A[cols], middle[rows]) + frames.b[cols]
-        free[rows[np.einsum("ki,ki->k", u, u) < 1.0]] = False
+        # An arc is free when its middle is inside the bounds and outside every ellipse that may
+        # overlap its own (any other ellipse misses the whole boundary).
         relevant_mask = np.zeros(m, dtype=bool)
         relevant_mask[relevant] = True
-        self.free = free & relevant_mask[arc_owner]
+        self.free = np.zeros(len(arc_owner), dtype=bool)
+        arcs = np.flatnonzero(relevant_mask[arc_owner])
+        middle = frames.point(arc_owner[arcs], _unit(start[arcs] + 0.5 * span[arcs]))
+        free = np.all((middle >= bounds_min) & (middle <= bounds_max), axis=1)
+        order = np.argsort(pair_i, kind="stable")
+        pair_j = pair_j[order]
+        neighbours = np.bincount(pair_i, minlength=m)
+        first_neighbour = np.concatenate([[0], np.cumsum(neighbours)[:-1]])
+        per_arc = neighbours[arc_owner[arcs]]
+        rows = np.repeat(np.arange(len(arcs)), per_arc)
+        cols = pair_j[np.repeat(first_neighbour[arc_owner[arcs]], per_arc) + np.arange(len(rows)) - np.repeat(np.cumsum(per_arc) - per_arc, per_arc)]
+        u = np.einsum("kij,kj->ki", frames.A[cols], middle[rows]) + frames.b[cols]
+        free[rows[np.einsum("ki,ki->k", u, u) < 1.0]] = False
+        self.free[arcs] = free
 
     def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
@@ -354,26 +411,33 @@ def _arc_polyline(frames: _Frames, owner: int, start: float, span: float) -> Flo
     return frames.point(np.full(len(u), owner), u)
 
 
-def _bounded_leg_graph(
-    *,
-    frames: _Frames,
-    stack: EllipseStack,
-    terminals: FloatArray,
-    bound: FloatArray,
-    bounds_min: FloatArray,
-    bounds_max: FloatArray,
-):
-    """The tangent graph restricted to the legs' informed ellipses (bound[k] for leg k → k + 1)."""
-    m, t = len(frames.A), len(terminals)
-    legs = len(terminals) - 1
-    a, z = terminals[:-1], terminals[1:]
+class _TangentGraph:
+    """The tangent graph, built within the legs' informed ellipses and grown as their bounds widen.
 
-    def informed(x: FloatArray, extra: FloatArray | None = None, y: FloatArray | None = None) -> FloatArray:
-        """Whether x (→ y) can lie on a leg within its bound: (len(x),) bool over any leg."""
-        y = x if y is None else y
-        extra = 0.0 if extra is None else extra
+    Tangents, cuts and segment tests do not depend on the bound, so each is computed once: a wider
+    bound only adds the pairs, ellipses and segments it newly lets in.
+    """
+
+    def __init__(self, *, frames: _Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max) -> None:
+        self.frames, self.stack, self.terminals = frames, stack, terminals
+        self.bounds_min, self.bounds_max = bounds_min, bounds_max
+        m, t = len(frames.A), len(terminals)
+        self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
+        self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int))
+        self.pair_done = np.zeros(0, dtype=np.int64)  # sorted keys i·m + j of the pairs with tangents
+        kk, ee = np.meshgrid(np.arange(t), np.arange(m), indexing="ij")
+        tk, tl = np.triu_indices(t, k=1)
+        self.segments = _Segments.concat([
+            _terminal_tangents(frames, terminals, kk.ravel(), ee.ravel()),
+            _Segments(terminals[tk], terminals[tl], -1 - tk, -1 - tl, np.zeros(len(tk)), np.zeros(len(tk))),
+        ])
+        self.status = np.zeros(len(self.segments.p), dtype=np.int8)  # 0 untested, 1 clear, 2 blocked
+
+    def _informed(self, bound: FloatArray, x: FloatArray, extra, y: FloatArray) -> FloatArray:
+        """Whether a path through x (then `extra` further, then y) can fit some leg's bound."""
+        a, z = self.terminals[:-1], self.terminals[1:]
         ok = np.zeros(len(x), dtype=bool)
-        for leg in range(legs):
+        for leg in range(len(a)):
             if bound[leg] <= 0.0:
                 continue
             if not np.isfinite(bound[leg]):
@@ -383,94 +447,107 @@ def _bounded_leg_graph(
             ok |= np.minimum(forward, backward) <= bound[leg] * (1.0 + 1e-12)
         return ok
 
-    # Ellipses that reach into some leg's informed ellipse (distance to a centre minus the reach).
-    relevant = np.zeros(m, dtype=bool)
-    for leg in range(legs):
-        if bound[leg] <= 0.0:
-            continue
-        gap = np.linalg.norm(frames.centers - a[leg], axis=1) + np.linalg.norm(frames.centers - z[leg], axis=1)
-        relevant |= gap - 2.0 * frames.reach <= bound[leg]
-    relevant = np.flatnonzero(relevant)
-    arcs = _Arcs(frames, stack, bounds_min, bounds_max, relevant)
+    def _grow(self, bound: FloatArray) -> None:
+        """Cuts of the ellipses and tangents of the pairs that the bound newly lets in."""
+        frames, m = self.frames, len(self.frames.A)
+        c, r = frames.centers, frames.reach
+        # Ellipses that reach into some leg's informed ellipse (distance to a centre minus the reach).
+        relevant = np.flatnonzero(self._informed(bound, c, -2.0 * r, c))
+        new = relevant[~self.covered[relevant]]
+        if len(new):
+            parts = _cuts(frames, self.stack, self.bounds_min, self.bounds_max, new)
+            self.cuts = tuple(np.concatenate([old, part]) for old, part in zip(self.cuts, parts))
+            self.covered[new] = True
+        # Pairs none of whose tangents fits a leg: a path through p ∈ i and q ∈ j is at least
+        # ‖from − cᵢ‖ − rᵢ + gap(discs) + ‖cⱼ − to‖ − rⱼ long (either way round).
+        ii, jj = np.triu_indices(len(relevant), k=1)
+        ii, jj = relevant[ii], relevant[jj]
+        gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
+        keep = self._informed(bound, c[ii], gap - r[ii] - r[jj], c[jj])
+        ii, jj = ii[keep], jj[keep]
+        keys = ii.astype(np.int64) * m + jj
+        fresh = ~np.isin(keys, self.pair_done, assume_unique=True)
+        if np.any(fresh):
+            added = _pair_tangents(frames, ii[fresh], jj[fresh])
+            self.segments = _Segments.concat([self.segments, added])
+            self.status = np.concatenate([self.status, np.zeros(len(added.p), dtype=np.int8)])
+            self.pair_done = np.union1d(self.pair_done, keys[fresh])
 
-    # Pairs none of whose tangents fits a leg: a path through p ∈ i and q ∈ j is at least
-    # ‖from − cᵢ‖ − rᵢ + gap(discs) + ‖cⱼ − to‖ − rⱼ long (either way round).
-    ii, jj = np.triu_indices(len(relevant), k=1)
-    ii, jj = relevant[ii], relevant[jj]
-    c, r = frames.centers, frames.reach
-    gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
-    keep = informed(c[ii], gap - r[ii] - r[jj], c[jj])
-    ii, jj = ii[keep], jj[keep]
-    parts = [_pair_tangents(frames, ii, jj)] if len(ii) else []
-    kk, ee = np.meshgrid(np.arange(t), relevant, indexing="ij")
-    parts.append(_terminal_tangents(frames, terminals, kk.ravel(), ee.ravel()))
-    tk, tl = np.triu_indices(t, k=1)
-    parts.append(_Segments(terminals[tk], terminals[tl], -1 - tk, -1 - tl, np.zeros(len(tk)), np.zeros(len(tk))))
-    seg = _Segments.concat(parts)
-    length = np.linalg.norm(seg.q - seg.p, axis=1)
-    keep = informed(seg.p, length, seg.q)
-    seg, length = seg.take(keep), length[keep]
+    def build(self, bound: FloatArray):
+        """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
+        self._grow(bound)
+        frames, t = self.frames, len(self.terminals)
+        arcs = _Arcs(frames, self.cuts, self.covered, self.bounds_min, self.bounds_max)
+        all_seg = self.segments
+        length_all = np.linalg.norm(all_seg.q - all_seg.p, axis=1)
+        pick = np.flatnonzero((self.status != 2) & self._informed(bound, all_seg.p, length_all, all_seg.q))
+        seg, length = all_seg.take(pick), length_all[pick]
 
-    # Tangent points must lie on a free arc (outside every other ellipse, inside the bounds).
-    arc_p = np.full(len(seg.p), -1)
-    arc_q = np.full(len(seg.p), -1)
-    unw_p, unw_q = seg.theta_p.copy(), seg.theta_q.copy()
-    on_p, on_q = seg.owner_p >= 0, seg.owner_q >= 0
-    arc_p[on_p], unw_p[on_p] = arcs.locate(seg.owner_p[on_p], seg.theta_p[on_p])
-    arc_q[on_q], unw_q[on_q] = arcs.locate(seg.owner_q[on_q], seg.theta_q[on_q])
-    keep = (~on_p | arcs.free[np.maximum(arc_p, 0)]) & (~on_q | arcs.free[np.maximum(arc_q, 0)])
-    seg, length = seg.take(keep), length[keep]
-    arc_p, arc_q, unw_p, unw_q = arc_p[keep], arc_q[keep], unw_p[keep], unw_q[keep]
+        # Tangent points must lie on a free arc (outside every other ellipse, inside the bounds).
+        arc_p = np.full(len(seg.p), -1)
+        arc_q = np.full(len(seg.p), -1)
+        unw_p, unw_q = seg.theta_p.copy(), seg.theta_q.copy()
+        on_p, on_q = seg.owner_p >= 0, seg.owner_q >= 0
+        arc_p[on_p], unw_p[on_p] = arcs.locate(seg.owner_p[on_p], seg.theta_p[on_p])
+        arc_q[on_q], unw_q[on_q] = arcs.locate(seg.owner_q[on_q], seg.theta_q[on_q])
+        valid = (~on_p | arcs.free[np.maximum(arc_p, 0)]) & (~on_q | arcs.free[np.maximum(arc_q, 0)])
+        self.status[pick[~valid]] = 2
 
-    # Exact segment test against every ellipse but the two it touches.
-    clear = np.ones(len(seg.p), dtype=bool)
-    for lo in range(0, len(seg.p), _CHUNK):
-        sl = slice(lo, lo + _CHUNK)
-        rows, cols, levels = stack.segment_pairs(seg.p[sl], seg.q[sl])
-        hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[sl][rows]) & (cols != seg.owner_q[sl][rows])
-        clear[lo + rows[hit]] = False
-    seg, length = seg.take(clear), length[clear]
-    arc_p, arc_q, unw_p, unw_q = arc_p[clear], arc_q[clear], unw_p[clear], unw_q[clear]
+        # Exact segment test against every ellipse but the two it touches, once per segment.
+        untested = np.flatnonzero(valid & (self.status[pick] == 0))
+        for lo in range(0, len(untested), _CHUNK):
+            k = untested[lo : lo + _CHUNK]
+            rows, cols, levels = self.stack.segment_pairs(seg.p[k], seg.q[k])
+            hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[k][rows]) & (cols != seg.owner_q[k][rows])
+            blocked = np.zeros(len(k), dtype=bool)
+            blocked[rows[hit]] = True
+            self.status[pick[k]] = np.where(blocked, 2, 1)
+        keep = self.status[pick] == 1
+        seg, length = seg.take(keep), length[keep]
+        arc_p, arc_q, unw_p, unw_q = arc_p[keep], arc_q[keep], unw_p[keep], unw_q[keep]
+        return self._assemble(seg, length, arcs, arc_p, arc_q, unw_p, unw_q)
 
-    # Nodes: terminals 0 … t − 1, then both ends of every segment that touch an ellipse.
-    s = len(seg.p)
-    node_p = np.where(seg.owner_p < 0, -1 - seg.owner_p, t + np.arange(s))
-    node_q = np.where(seg.owner_q < 0, -1 - seg.owner_q, t + s + np.arange(s))
-    points = np.vstack([terminals, seg.p, seg.q])
-    owner = np.concatenate([np.full(t, -1), seg.owner_p, seg.owner_q])
-    unwrapped = np.concatenate([np.zeros(t), unw_p, unw_q])
-    arc = np.concatenate([np.full(t, -1), arc_p, arc_q])
-    # Arcs: consecutive tangent points of one free arc, in angle order.
-    on = np.flatnonzero(owner >= 0)
-    on = on[np.lexsort((unwrapped[on], arc[on]))]
-    consecutive = arc[on[:-1]] == arc[on[1:]]
-    u, v = on[:-1][consecutive], on[1:][consecutive]
-    arc_len = _arc_length(frames, owner[u], unwrapped[u], unwrapped[v] - unwrapped[u])
-    # An ellipse with no cut is one free loop: also join its last tangent point to its first.
-    whole = arcs.count[owner[on]] == 0
-    ends = on[whole]
-    if len(ends):
-        o = owner[ends]
-        last = np.r_[o[1:] != o[:-1], True]
-        firstm = np.r_[True, o[1:] != o[:-1]]
-        lu, fv = ends[last], ends[firstm]
-        two = lu != fv
-        lu, fv = lu[two], fv[two]
-        wrap_len = _arc_length(frames, owner[lu], unwrapped[lu], unwrapped[fv] + 2.0 * np.pi - unwrapped[lu])
-        u, v = np.concatenate([u, lu]), np.concatenate([v, fv])
-        arc_len = np.concatenate([arc_len, wrap_len])
-    i = np.concatenate([node_p, u])
-    j = np.concatenate([node_q, v])
-    w = np.concatenate([length, arc_len]) + 1e-12  # explicit zeros would be no edge
-    # Keep the shorter of parallel edges (two arcs joining the only two points of a loop).
-    lo_, hi_ = np.minimum(i, j), np.maximum(i, j)
-    order = np.lexsort((w, hi_, lo_))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (lo_[order][1:] != lo_[order][:-1]) | (hi_[order][1:] != hi_[order][:-1])
-    order = order[first]
-    n = len(points)
-    graph = coo_matrix((w[order], (lo_[order], hi_[order])), shape=(n, n)).tocsr()
-    return graph, points, owner, unwrapped
+    def _assemble(self, seg, length, arcs, arc_p, arc_q, unw_p, unw_q):
+        frames, t, terminals = self.frames, len(self.terminals), self.terminals
+        # Nodes: terminals 0 … t − 1, then both ends of every segment that touch an ellipse.
+        s = len(seg.p)
+        node_p = np.where(seg.owner_p < 0, -1 - seg.owner_p, t + np.arange(s))
+        node_q = np.where(seg.owner_q < 0, -1 - seg.owner_q, t + s + np.arange(s))
+        points = np.vstack([terminals, seg.p, seg.q])
+        owner = np.concatenate([np.full(t, -1), seg.owner_p, seg.owner_q])
+        unwrapped = np.concatenate([np.zeros(t), unw_p, unw_q])
+        arc = np.concatenate([np.full(t, -1), arc_p, arc_q])
+        # Arcs: consecutive tangent points of one free arc, in angle order.
+        on = np.flatnonzero(owner >= 0)
+        on = on[np.lexsort((unwrapped[on], arc[on]))]
+        consecutive = arc[on[:-1]] == arc[on[1:]]
+        u, v = on[:-1][consecutive], on[1:][consecutive]
+        arc_len = _arc_length(frames, owner[u], unwrapped[u], unwrapped[v] - unwrapped[u])
+        # An ellipse with no cut is one free loop: also join its last tangent point to its first.
+        whole = arcs.count[owner[on]] == 0
+        ends = on[whole]
+        if len(ends):
+            o = owner[ends]
+            last = np.r_[o[1:] != o[:-1], True]
+            firstm = np.r_[True, o[1:] != o[:-1]]
+            lu, fv = ends[last], ends[firstm]
+            two = lu != fv
+            lu, fv = lu[two], fv[two]
+            wrap_len = _arc_length(frames, owner[lu], unwrapped[lu], unwrapped[fv] + 2.0 * np.pi - unwrapped[lu])
+            u, v = np.concatenate([u, lu]), np.concatenate([v, fv])
+            arc_len = np.concatenate([arc_len, wrap_len])
+        i = np.concatenate([node_p, u])
+        j = np.concatenate([node_q, v])
+        w = np.concatenate([length, arc_len]) + 1e-12  # explicit zeros would be no edge
+        # Keep the shorter of parallel edges (two arcs joining the only two points of a loop).
+        lo_, hi_ = np.minimum(i, j), np.maximum(i, j)
+        order = np.lexsort((w, hi_, lo_))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = (lo_[order][1:] != lo_[order][:-1]) | (hi_[order][1:] != hi_[order][:-1])
+        order = order[first]
+        n = len(points)
+        graph = coo_matrix((w[order], (lo_[order], hi_[order])), shape=(n, n)).tocsr()
+        return graph, points, owner, unwrapped
 
 
 def _polyline(frames: _Frames, graph, points, owner, unwrapped, chain: list[int]) -> FloatArray:
@@ -518,25 +595,34 @@ def shortest_route(
     straight = np.linalg.norm(np.diff(terminals, axis=0), axis=1)
     legs: list[FloatArray | None] = [None] * len(goals)
     lengths = [np.inf] * len(goals)
-    for factor in _BOUND_FACTORS:
+    # Each leg's bound: the next factor, or the length of a route found beyond the last bound (any
+    # route is an upper bound, and a tighter one than the next factor).
+    step = np.zeros(len(goals), dtype=int)
+    bound = _BOUND_FACTORS[0] * straight + 1e-9
+    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min, bounds_max=bounds_max)
+    while True:
         todo = [k for k in range(len(goals)) if legs[k] is None]
-        bound = np.where(np.isin(np.arange(len(goals)), todo), factor * straight + 1e-9, 0.0)
-        graph, points, owner, unwrapped = _bounded_leg_graph(
-            frames=frames, stack=scaled, terminals=terminals, bound=bound, bounds_min=bounds_min, bounds_max=bounds_max
-        )
+        if not todo:
+            return Route(legs=legs, lengths_m=lengths)
+        active = np.where(np.isin(np.arange(len(goals)), todo), bound, 0.0)
+        graph, points, owner, unwrapped = tangents.build(active)
         dist, pred = dijkstra(graph, directed=False, indices=todo, return_predecessors=True)
         for row, leg in enumerate(todo):
             target = leg + 1
-            if not (np.isfinite(dist[row, target]) and dist[row, target] <= bound[leg]):
-                continue  # not found within the bound: maybe beyond it
-            chain = [target]
-            while chain[-1] != leg:
-                chain.append(int(pred[row, chain[-1]]))
-            legs[leg] = _polyline(frames, graph, points, owner, unwrapped, chain[::-1])
-            lengths[leg] = float(dist[row, target])
-        if all(leg is not None for leg in legs):
-            return Route(legs=legs, lengths_m=lengths)
-    return None
+            found = dist[row, target]
+            if np.isfinite(found) and found <= bound[leg]:
+                chain = [target]
+                while chain[-1] != leg:
+                    chain.append(int(pred[row, chain[-1]]))
+                legs[leg] = _polyline(frames, graph, points, owner, unwrapped, chain[::-1])
+                lengths[leg] = float(found)
+            elif not np.isfinite(bound[leg]):
+                return None  # the whole graph has no route
+            elif np.isfinite(found):
+                bound[leg] = found * (1.0 + 1e-9)
+            else:
+                step[leg] += 1
+                bound[leg] = _BOUND_FACTORS[step[leg]] * straight[leg] + 1e-9
 
 
 def tangent_route(
