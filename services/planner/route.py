@@ -112,15 +112,16 @@ def _quadratic_form_coef(K: FloatArray, e: FloatArray, const: FloatArray) -> Flo
     )
 
 
-def _bracketed_root(g, lo: FloatArray, hi: FloatArray) -> FloatArray:
+def _bracketed_root(g, lo: FloatArray, hi: FloatArray, start: FloatArray | None = None) -> FloatArray:
     """Roots of g (value and derivative at (θ, indices)) in brackets [lo, hi] with a sign change.
 
-    Newton steps that leave the bracket become bisections (safeguarded Newton), element by element.
+    Newton steps from `start` (default: the middles) that leave the bracket become bisections
+    (safeguarded Newton), element by element.
     """
     lo, hi = lo.copy(), hi.copy()
     every = np.arange(len(lo))
     f_lo = g(lo, every)[0]
-    x = 0.5 * (lo + hi)
+    x = 0.5 * (lo + hi) if start is None else np.clip(start, np.minimum(lo, hi), np.maximum(lo, hi))
     active = every
     for _ in range(60):
         xa, la, ha = x[active], lo[active], hi[active]
@@ -210,7 +211,13 @@ def _window_roots(
         dh = ((s22[k] - s11[k]) * c * s + s12[k] * (c * c - s * s)) / h
         return D[k] * np.cos(theta - phi[k]) - 1.0 + sign * h, -D[k] * np.sin(theta - phi[k]) + sign * dh
 
-    return _bracketed_root(g, lo, hi)
+    # Start from the root for a circle of j's radius √(nᵀSn) at the window's middle: Newton then
+    # needs about three steps.
+    mid = 0.5 * (lo + hi)
+    radius = np.sqrt(s11 * np.cos(mid) ** 2 + 2.0 * s12 * np.cos(mid) * np.sin(mid) + s22 * np.sin(mid) ** 2)
+    side = np.sign(np.sin(mid - phi))
+    start = phi + side * np.arccos(np.clip((1.0 - sign * radius) / D, -1.0, 1.0))
+    return _bracketed_root(g, lo, hi, start)
 
 
 @dataclass
@@ -238,7 +245,7 @@ def _pair_tangents(frames: _Frames, i: FloatArray, j: FloatArray) -> _Segments:
     c = np.einsum("kij,kj->ki", frames.A[i], frames.centers[j]) + frames.b[i]  # j's centre in i's frame
     S = np.einsum("kij,kjl,kml->kim", frames.A[i], Q, frames.A[i])  # j's shape in i's frame
     D = np.linalg.norm(c, axis=1)
-    rho = np.sqrt(np.linalg.eigvalsh(S)[:, 1])
+    rho = np.sqrt(0.5 * (S[:, 0, 0] + S[:, 1, 1] + np.hypot(S[:, 0, 0] - S[:, 1, 1], 2.0 * S[:, 0, 1])))
     far = D > (1.0 + rho) * (1.0 + 1e-9)
     thetas, signs, rows = [], [], []
     f = np.flatnonzero(far)
@@ -292,10 +299,30 @@ def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e:
     return _Segments(terminals[kk], z, -1 - kk, ee, np.zeros(len(kk)), np.mod(theta, 2.0 * np.pi))
 
 
+_EDGE_RAD = 1e-9  # a cut's side is read this far either side of it
+
+
+def _bound_sources(frames: _Frames, owner: FloatArray, bounds_min: FloatArray, bounds_max: FloatArray):
+    """Each bound as a cosine R cos(θ − ψ) + c − bound of ellipse `owner`'s boundary coordinate,
+    covering where it is > 0 (past the bound): (R, ψ, offset, outward sign) per (owner, bound)."""
+    out = []
+    Ainv, centers = frames.Ainv[owner], frames.centers[owner]
+    for axis in range(2):
+        R = np.hypot(Ainv[:, axis, 0], Ainv[:, axis, 1])
+        psi = np.arctan2(Ainv[:, axis, 1], Ainv[:, axis, 0])
+        for bound, outward in ((bounds_min[axis], -1.0), (bounds_max[axis], 1.0)):
+            out.append((R, psi, centers[:, axis] - bound, outward))
+    return out
+
+
 def _cuts(frames: _Frames, stack: EllipseStack, bounds_min: FloatArray, bounds_max: FloatArray, relevant: FloatArray):
-    """Where each relevant ellipse's boundary is crossed by another ellipse or a bound: (owner, θ);
-    and the pairs (i, j) of ellipses that may overlap (j may cover part of i)."""
-    owners, thetas = [], []
+    """Where each relevant ellipse's boundary is crossed by another ellipse or a bound.
+
+    Returns (owner, θ, Δ) per cut, Δ = +1 where the boundary enters the other ellipse (or leaves the
+    bounds), −1 where it leaves, 0 at a touch; and (i, coef) for each pair of ellipses that may
+    overlap: ‖Aⱼ z(θ) + bⱼ‖² − 1 along i's boundary as trigonometric coefficients.
+    """
+    owners, thetas, deltas = [], [], []
     i, j = stack.near_pairs(frames.centers[relevant], frames.reach[relevant])
     i = relevant[i]
     keep = i != j
@@ -306,76 +333,71 @@ def _cuts(frames: _Frames, stack: EllipseStack, bounds_min: FloatArray, bounds_m
     support = np.linalg.norm(np.einsum("kij,ki->kj", Ai, d), axis=1) + np.linalg.norm(np.einsum("kij,ki->kj", Aj, d), axis=1)
     keep = np.einsum("ki,ki->k", d, d) <= support * (1.0 + 1e-9)
     i, j = i[keep], j[keep]
+    M = np.einsum("kij,kjl->kil", frames.A[j], frames.Ainv[i])
+    d = np.einsum("kij,kj->ki", frames.A[j], frames.centers[i]) + frames.b[j]
+    coef = _quadratic_form_coef(
+        np.einsum("kji,kjl->kil", M, M), np.einsum("kji,kj->ki", M, d), np.einsum("ki,ki->k", d, d) - 1.0
+    )
     if len(i):
-        M = np.einsum("kij,kjl->kil", frames.A[j], frames.Ainv[i])
-        d = np.einsum("kij,kj->ki", frames.A[j], frames.centers[i]) + frames.b[j]
-        coef = _quadratic_form_coef(
-            np.einsum("kji,kjl->kil", M, M), np.einsum("kji,kj->ki", M, d), np.einsum("ki,ki->k", d, d) - 1.0
-        )
         roots, real = _trig_roots(coef)
         k, slot = np.nonzero(real)
+        theta = roots[k, slot]
+        after = _trig(coef[k], (theta + _EDGE_RAD)[:, None])[0][:, 0] < 0.0
+        before = _trig(coef[k], (theta - _EDGE_RAD)[:, None])[0][:, 0] < 0.0
         owners.append(i[k])
-        thetas.append(roots[k, slot])
-    # Bounds: coordinate a of A⁻¹u + c is R cos(θ − ψ) + c_a; it crosses a bound where the cosine allows.
-    Ainv = frames.Ainv[relevant]
-    for axis in range(2):
-        R = np.hypot(Ainv[:, axis, 0], Ainv[:, axis, 1])
-        psi = np.arctan2(Ainv[:, axis, 1], Ainv[:, axis, 0])
-        for bound in (bounds_min[axis], bounds_max[axis]):
-            ratio = (bound - frames.centers[relevant, axis]) / R
-            hit = np.abs(ratio) < 1.0
-            half = np.arccos(ratio[hit])
-            owners += [relevant[hit], relevant[hit]]
-            thetas += [psi[hit] + half, psi[hit] - half]
+        thetas.append(theta)
+        deltas.append(after.astype(int) - before.astype(int))
+    for R, psi, offset, outward in _bound_sources(frames, relevant, bounds_min, bounds_max):
+        ratio = -offset / R
+        hit = np.abs(ratio) < 1.0
+        half = np.arccos(ratio[hit])
+        for theta in (psi[hit] + half, psi[hit] - half):
+            past = [outward * (R[hit] * np.cos(t - psi[hit]) + offset[hit]) > 0.0 for t in (theta + _EDGE_RAD, theta - _EDGE_RAD)]
+            owners.append(relevant[hit])
+            thetas.append(theta)
+            deltas.append(past[0].astype(int) - past[1].astype(int))
     owner = np.concatenate(owners) if owners else np.zeros(0, dtype=int)
     theta = np.mod(np.concatenate(thetas), 2.0 * np.pi) if thetas else np.zeros(0)
-    return owner, theta, i, j
+    delta = np.concatenate(deltas) if deltas else np.zeros(0, dtype=int)
+    return owner, theta, delta, i, coef
 
 
 class _Arcs:
-    """Free and blocked arcs of each ellipse's boundary between consecutive cuts."""
+    """Free and blocked arcs of each ellipse's boundary between consecutive cuts.
+
+    How many ellipses (and bounds) cover an arc is counted at one point of each boundary — the middle
+    of its wrap-round arc, away from every cut — and carried round by the cuts' Δ: an arc is free where
+    the count is 0.
+    """
 
     def __init__(self, frames: _Frames, cuts, covered: FloatArray, bounds_min, bounds_max) -> None:
         """`cuts` from `_cuts` for the ellipses `covered` (a mask); the others get no free arc."""
         m = len(frames.A)
-        owner, theta, pair_i, pair_j = cuts
+        owner, theta, delta, pair_i, pair_coef = cuts
         order = np.lexsort((theta, owner))
-        self.owner, self.theta = owner[order], theta[order]
-        relevant = np.flatnonzero(covered)
+        self.owner, self.theta, delta = owner[order], theta[order], delta[order]
         self.count = np.bincount(self.owner, minlength=m)
         self.first = np.concatenate([[0], np.cumsum(self.count)[:-1]])
         # One arc per cut (from it to the next, the last wrapping round), or the whole boundary.
         arcs_of = np.maximum(self.count, 1)
         self.arc_first = np.concatenate([[0], np.cumsum(arcs_of)[:-1]])
-        arc_owner = np.repeat(np.arange(m), arcs_of)
-        local = np.arange(len(arc_owner)) - self.arc_first[arc_owner]
-        has = self.count[arc_owner] > 0
-        start = np.zeros(len(arc_owner))
-        span = np.full(len(arc_owner), 2.0 * np.pi)
-        if len(self.theta):
-            cut = self.first[arc_owner[has]] + local[has]
-            nxt = self.first[arc_owner[has]] + (local[has] + 1) % self.count[arc_owner[has]]
-            start[has] = self.theta[cut]
-            span[has] = np.mod(self.theta[nxt] - start[has], 2.0 * np.pi)
-            span[has & (span == 0.0)] = 2.0 * np.pi
-        # An arc is free when its middle is inside the bounds and outside every ellipse that may
-        # overlap its own (any other ellipse misses the whole boundary).
-        relevant_mask = np.zeros(m, dtype=bool)
-        relevant_mask[relevant] = True
-        self.free = np.zeros(len(arc_owner), dtype=bool)
-        arcs = np.flatnonzero(relevant_mask[arc_owner])
-        middle = frames.point(arc_owner[arcs], _unit(start[arcs] + 0.5 * span[arcs]))
-        free = np.all((middle >= bounds_min) & (middle <= bounds_max), axis=1)
-        order = np.argsort(pair_i, kind="stable")
-        pair_j = pair_j[order]
-        neighbours = np.bincount(pair_i, minlength=m)
-        first_neighbour = np.concatenate([[0], np.cumsum(neighbours)[:-1]])
-        per_arc = neighbours[arc_owner[arcs]]
-        rows = np.repeat(np.arange(len(arcs)), per_arc)
-        cols = pair_j[np.repeat(first_neighbour[arc_owner[arcs]], per_arc) + np.arange(len(rows)) - np.repeat(np.cumsum(per_arc) - per_arc, per_arc)]
-        u = np.einsum("kij,kj->ki", frames.A[cols], middle[rows]) + frames.b[cols]
-        free[rows[np.einsum("ki,ki->k", u, u) < 1.0]] = False
-        self.free[arcs] = free
+        has = self.count > 0
+        reference = np.zeros(m)
+        last = self.first[has] + self.count[has] - 1
+        reference[has] = 0.5 * (self.theta[last] + self.theta[self.first[has]] + 2.0 * np.pi)
+        base = np.zeros(m, dtype=int)
+        if len(pair_i):
+            inside = _trig(pair_coef, reference[pair_i][:, None])[0][:, 0] < 0.0
+            np.add.at(base, pair_i[inside], 1)
+        every = np.arange(m)
+        for R, psi, offset, outward in _bound_sources(frames, every, bounds_min, bounds_max):
+            base += outward * (R * np.cos(reference - psi) + offset) > 0.0
+        # Arc k of an ellipse starts at its cut k: count = base + Δ₀ + … + Δₖ (the last arc: base).
+        running = np.cumsum(delta) - np.repeat(np.cumsum(delta)[self.first[has]] - delta[self.first[has]], self.count[has])
+        coverage = np.repeat(base, arcs_of)
+        cut_arcs = self.arc_first[self.owner] + np.arange(len(self.owner)) - self.first[self.owner]
+        coverage[cut_arcs] += running
+        self.free = (coverage == 0) & np.repeat(covered, arcs_of)
 
     def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
@@ -423,7 +445,7 @@ class _TangentGraph:
         self.bounds_min, self.bounds_max = bounds_min, bounds_max
         m, t = len(frames.A), len(terminals)
         self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
-        self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int))
+        self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
         self.pair_done = np.zeros(0, dtype=np.int64)  # sorted keys i·m + j of the pairs with tangents
         kk, ee = np.meshgrid(np.arange(t), np.arange(m), indexing="ij")
         tk, tl = np.triu_indices(t, k=1)
