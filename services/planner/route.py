@@ -16,18 +16,20 @@ move tangent points, and no polygon size is right for every map.
   at most four tangents. When j's bounding disc is clear of the unit circle (|c| > 1 + ρ, ρ² the
   largest eigenvalue of S) there are exactly four, one of each sign in each of the windows
   |θ − ∠c| ∈ [acos((1 + ρ)/|c|), acos((1 − ρ)/|c|)], where the sign is known at both ends: found by
-  safeguarded Newton. Close pairs (few: neighbours) take the quartic's roots from its companion matrix.
+  safeguarded Newton. Close pairs (few: neighbours) bracket F's roots on a grid (`_trig_roots`).
 * Tangents from a terminal: at angles ∠q ± acos(1/|q|) for q the terminal in the unit-disc frame.
 * Arcs. Each ellipse's boundary is cut where another ellipse crosses it (‖M u(θ) + d‖² = 1, again a
-  quartic in e^{iθ}) or a map bound does (a cosine); between consecutive cuts an arc is wholly free or
-  wholly blocked (tested at its middle). Consecutive tangent points on a free arc are joined by it, at
-  its exact length (Gauss–Legendre on the speed ‖A⁻¹ u′(θ)‖).
+  degree-2 trigonometric polynomial) or a map bound does (a cosine); between consecutive cuts an arc
+  is wholly free or wholly blocked (how many obstacles cover it is counted round the boundary).
+  Consecutive tangent points on a free arc are joined by it, at its exact length (Gauss–Legendre on
+  the speed ‖A⁻¹ u′(θ)‖).
 
 Tangent points inside another ellipse are dropped; every remaining tangent segment is checked exactly
 against the other ellipses (eq. 2 on the continuous segment). Dijkstra then picks every side
 globally. Only points x with ‖x − from‖ + ‖x − to‖ ≤ bound can lie on a leg no longer than `bound`, so
 the graph is built within that informed ellipse, starting a little above the straight distance and
-widening it until the leg found is within it — then it is the exact shortest.
+widening it (to the length of a route found beyond the bound, else by a factor) until the leg found
+is within it — then it is the exact shortest. Tangents, cuts and segment tests are kept as it widens.
 """
 
 from __future__ import annotations
