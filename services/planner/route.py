@@ -47,7 +47,7 @@ _ROOT_TOL = 1e-6  # a quartic root this close to the unit circle is a real angle
 _BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding) is clear
 _ARC_PIECE_RAD = np.pi / 8  # Gauss–Legendre pieces for arc lengths
 _ARC_VERTEX_RAD = np.pi / 16  # polyline vertices of an arc in the route returned
-_BOUND_FACTORS = (1.03, 1.1, 1.3, 2.0, np.inf)  # informed-ellipse bounds tried, × the straight distance
+_BOUND_FACTORS = (1.03, 1.1, 1.2, 1.35, 1.6, 2.2, np.inf)  # informed-ellipse bounds tried, × the straight distance
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(6)
 
 
