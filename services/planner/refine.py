@@ -51,7 +51,7 @@ class SolverFailure(RuntimeError):
 @dataclass(frozen=True)
 class RefineSettings:
     step_m: float = 0.1  # the paper's step bound
-    spacing_m: float = 0.08  # target point spacing: leaves the step bound room for the path to lengthen
+    spacing_m: float = 0.09  # target point spacing: leaves the step bound room for the path to lengthen
     level: float = 1.01  # ‖A z + b‖ the refined points keep: margin for the smoothed curve
     start_level: float = 1.003  # ... within one turning radius of the start, where the car cannot yet steer away
     curvature_factor: float = 0.97  # plan to this fraction of the car's curvature bound ...
