@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from itertools import chain
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -194,9 +195,9 @@ class EllipseStack:
         if len(self) == 0 or len(centers) == 0:
             return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
         lists = self._tree.query_ball_point(centers, r=radii + self.reach.max())
-        counts = np.fromiter((len(x) for x in lists), dtype=int, count=len(lists))
+        counts = np.fromiter(map(len, lists), dtype=int, count=len(lists))
         rows = np.repeat(np.arange(len(centers)), counts)
-        cols = np.concatenate([np.asarray(x, dtype=int) for x in lists]) if counts.sum() else np.zeros(0, dtype=int)
+        cols = np.fromiter(chain.from_iterable(lists), dtype=int, count=int(counts.sum()))
         close = np.linalg.norm(centers[rows] - self.centers[cols], axis=1) <= radii[rows] + self.reach[cols]
         return rows[close], cols[close]
 

@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from cvxnav.bench.problem import OPTIMUM_LEVEL, BenchProblem
+from cvxnav.bench.problem import BenchProblem
 from cvxnav.geometry import Ellipse, FloatArray, polyline_length, resample_polyline
 
 
@@ -69,31 +69,30 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     return Attempt(path=np.array(plan.path), time_s=plan_s, extra=extra)
 
 
-def plan_optimum(problem: BenchProblem, *, sides: int) -> Attempt:
-    """Shortest path outside the grown ellipses: cvxnav's tangent graph made fine.
+def plan_optimum(problem: BenchProblem) -> Attempt:
+    """The exact shortest path outside the grown ellipses (point robot): cvxnav's own route search.
 
-    `services.planner.route.tangent_route` with `sides`-gons circumscribing each ellipse at level
-    1 + 1e-6. Every polygon lies outside its ellipse, so the result is feasible and an UPPER bound on the
-    exact optimum; along an arc it is longer by at most 1/cos(π/sides) − 1 (7.5e-5 for 256 sides), and
-    tangent segments are exact, so it is within that factor of the true optimum of the model.
+    `services.planner.route.shortest_route` at level 1: the exact tangent graph of the ellipses
+    (common tangents, tangents from the terminals, free boundary arcs), so its length — tangents plus
+    elliptic arcs, in `extra` per leg — is the model's optimum. The path returned draws each arc as
+    a circumscribed polyline, a little longer than the arc (≤ 1/cos(π/32) − 1) and still outside.
     """
-    from services.planner.route import tangent_route
+    from services.planner.route import shortest_route
 
     t0 = time.perf_counter()
-    legs = tangent_route(
+    route = shortest_route(
         start=problem.start,
         goals=problem.goals,
         ellipses=problem.grown,
         bounds_min=problem.bounds_min,
         bounds_max=problem.bounds_max,
-        sides=sides,
-        level=OPTIMUM_LEVEL,
+        level=1.0,
     )
     elapsed = time.perf_counter() - t0
-    if legs is None:
+    if route is None:
         return Attempt(path=None, time_s=elapsed, reason="tangent graph: no route")
-    path = np.vstack([legs[0]] + [leg[1:] for leg in legs[1:]])
-    return Attempt(path=path, time_s=elapsed, extra={f"leg{k}_m": polyline_length(leg) for k, leg in enumerate(legs)})
+    path = np.vstack([route.legs[0]] + [leg[1:] for leg in route.legs[1:]])
+    return Attempt(path=path, time_s=elapsed, extra={f"leg{k}_m": length for k, length in enumerate(route.lengths_m)})
 
 
 # --------------------------------------------------------------------------- the paper, as written

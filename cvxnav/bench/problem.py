@@ -22,9 +22,6 @@ from schemas.scenario import Scenario
 # The true-geometry check allows this much less than width/2 + safety: the grown ellipses are built
 # from a 16-gon cover of each circle, so a path hugging one may sit a few mm inside the exact margin.
 COLLISION_TOLERANCE_M = 0.02
-# The optimum's tangent-graph polygons sit at ‖A z + b‖ = OPTIMUM_LEVEL: 1 + 1e-6, because a polygon
-# side touching the ellipse exactly (level 1.0) is rejected by rounding and the graph falls apart.
-OPTIMUM_LEVEL = 1.0 + 1e-6
 
 
 class _NoClock:

@@ -1,6 +1,6 @@
 """`cvxnav bench`: every planner on the same scenarios and the same grown ellipses, in one process.
 
-For each scenario: the grown-ellipse model (`BenchProblem`), its optimum (a fine tangent graph), then
+For each scenario: the grown-ellipse model (`BenchProblem`), its exact optimum (the tangent graph of the ellipses), then
 each planner `repeats` times (cvxnav once more first, cold), each answer judged on the true geometry;
 peak memory from one extra untimed call under tracemalloc (Python allocations, numpy's included;
 C++ allocations inside OMPL, Drake and Clarabel are not seen). Then the fitting micro-benchmark and
@@ -53,7 +53,6 @@ class BenchOptions:
     quick: bool = False
     repeats: int = 5
     sampling_budget_s: float = 5.0  # per leg, for BIT* and Informed RRT*
-    optimum_sides: int = 256
     drake_regions: int = 16
     drake_repeats: int = 2  # IRIS + GCS is slow and deterministic given its seed
     fit_counts: tuple[int, ...] = (20, 100, 1000)
@@ -65,7 +64,7 @@ class BenchOptions:
     @classmethod
     def quick_defaults(cls, *, repeats: int | None = None) -> BenchOptions:
         """Under two minutes on two cores: one repeat fewer everywhere, short budgets, a small scaling run."""
-        return cls(quick=True, repeats=repeats or 2, sampling_budget_s=1.0, optimum_sides=64, drake_regions=8,
+        return cls(quick=True, repeats=repeats or 2, sampling_budget_s=1.0, drake_regions=8,
                    drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, scaling_counts=(10, 25), scaling_repeats=1)
 
 
@@ -197,8 +196,8 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         "only cvxnav honours the start heading and the curvature bound, the peers plan for a point robot.",
         f"Collision = true-geometry clearance (Scenario.clearance, path resampled at 0.02 m) below "
         f"width/2 + safety − {COLLISION_TOLERANCE_M} m; a colliding planner counts as failed.",
-        f"Optimum = tangent graph over {options.optimum_sides}-gons circumscribing each grown ellipse at level 1 + 1e-6: "
-        f"feasible, above the model's exact optimum by at most {1 / np.cos(np.pi / options.optimum_sides) - 1:.1e} relative.",
+        "Optimum = the exact tangent graph of the grown ellipses (common tangents, tangents from start and goals, "
+        "free boundary arcs; services/planner/route.py at level 1): its length is the model's exact optimum.",
         "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack-style segment test) in a "
         "Python MotionValidator, so OMPL's times include Python callback overhead.",
         "Drake: IRIS on the grown ellipses themselves, and on 32-gons circumscribing them (≤ 0.5 % larger) because "
@@ -216,9 +215,9 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
             progress.update(task, description=f"{scenario.name}: fitting the model")
             problem = BenchProblem.of(scenario)
             progress.update(task, description=f"{scenario.name}: optimum")
-            optimum = planners.plan_optimum(problem, sides=options.optimum_sides)
-            optimum_m = check_path(problem, optimum.path).length_m if optimum.path is not None else None
+            optimum = planners.plan_optimum(problem)
             leg_optima = [v for k, v in optimum.extra.items() if k.startswith("leg")]
+            optimum_m = float(sum(leg_optima)) if optimum.path is not None else None
             rows: list[PlannerResult] = []
             for spec in _specs(options, peers, leg_optima):
                 progress.update(task, description=f"{scenario.name}: {spec.name}")
@@ -237,11 +236,11 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
                 reason=optimum.reason, length_m=optimum_m, length_ratio=1.0 if optimum_m else None,
                 min_clearance_m=check_path(problem, optimum.path).min_clearance_m if optimum.path is not None else None,
                 time_median_ms=1e3 * optimum.time_s, time_p90_ms=1e3 * optimum.time_s,
-                time_meaning=f"one tangent-graph search, {options.optimum_sides} sides",
+                time_meaning="one exact tangent-graph search",
             ))
             results.append(ScenarioResult(
                 name=scenario.name, obstacles=len(scenario.obstacles), grown_ellipses=len(problem.grown),
-                optimum_m=optimum_m, optimum_note=f"tangent graph, {options.optimum_sides}-gons, level 1 + 1e-6",
+                optimum_m=optimum_m, optimum_note="exact tangent graph of the grown ellipses",
                 reference_m=references.get(scenario.name), planners=rows,
             ))
         progress.update(task, description="fitting micro-benchmark")

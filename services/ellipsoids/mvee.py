@@ -11,9 +11,10 @@ Two routes solve it:
 * `mvee` — the convex programme above in cvxpy (Boyd & Vandenberghe, Convex Optimization §8.4.1),
   built once per padded point count with a `cp.Parameter` for the points and re-solved.
 * `mvee_fast` — the dual problem, maximise log det(Q diag(u) Qᵀ) over the simplex with qᵢ = (xᵢ, 1),
-  solved by Khachiyan's algorithm with Todd–Yildirim away steps (Todd & Yildirim 2007, "On Khachiyan's
-  algorithm for the computation of minimum-volume enclosing ellipsoids") to a coarse tolerance and
-  finished by Newton steps on the support; pure numpy.
+  solved by Newton steps on the support from the Kumar–Yildirim start (the extreme points along each
+  axis), the support kept right by Khachiyan's algorithm with Todd–Yildirim away steps (Todd & Yildirim
+  2007, "On Khachiyan's algorithm for the computation of minimum-volume enclosing ellipsoids"); pure
+  numpy.
 
 Both work on the convex-hull vertices (the MVEE of a set is the MVEE of its hull), in whitened
 coordinates (centred, unit spread along both principal axes: the MVEE commutes with affine maps),
@@ -73,16 +74,16 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     """
     shift = z.mean(axis=0)
     centred = z - shift
-    _, _, vt = np.linalg.svd(centred, full_matrices=False) if len(z) > 1 else (None, None, np.eye(2))
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False) if len(z) > 1 else (None, np.zeros(1), np.eye(2))
     across = centred @ vt[-1]
-    if np.ptp(across) < eps_m:
+    if len(sv) < 2 or np.ptp(across) < eps_m:
         along = centred @ vt[0]
         ends = centred[[int(np.argmin(along)), int(np.argmax(along))]]
         cross = eps_m * np.array([vt[0], -vt[0], vt[1], -vt[1]])
         centred = (ends[:, None, :] + cross[None, :, :]).reshape(-1, 2)
         shift = shift + centred.mean(axis=0)
         centred = centred - centred.mean(axis=0)
-    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+        _, sv, vt = np.linalg.svd(centred, full_matrices=False)
     spread = sv / np.sqrt(len(centred))
     transform = vt.T * spread  # columns: principal axes scaled by their spread
     unit = (centred @ vt.T) / spread
@@ -90,25 +91,25 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     return unit[hull.vertices], shift, transform
 
 
-def _denormalise(A_unit: FloatArray, b_unit: FloatArray, *, shift: FloatArray, transform: FloatArray) -> Ellipse:
-    """‖A' T⁻¹(x − shift) + b'‖ ≤ 1 as {x : ‖A x + b‖ ≤ 1} with A symmetric: A = (MᵀM)^{1/2}, M = A' T⁻¹."""
+def _ellipse(
+    A_unit: FloatArray, b_unit: FloatArray, *, shift: FloatArray, transform: FloatArray, z: FloatArray, max_violation: float
+) -> Ellipse:
+    """‖A' T⁻¹(x − shift) + b'‖ ≤ 1 as {x : ‖A x + b‖ ≤ 1}, scaled about its centre to contain `z`.
+
+    A symmetric: A = (MᵀM)^{1/2} with M = A' T⁻¹, in closed form for 2 × 2 (√S = (S + √det S · I) /
+    √(tr S + 2√det S)). A point of `z` further out than level 1 + `max_violation` is a failed fit.
+    """
     M = A_unit @ np.linalg.inv(transform)
     center = shift + transform @ np.linalg.solve(A_unit, -b_unit)
-    w, R = np.linalg.eigh(M.T @ M)
-    A = R @ np.diag(np.sqrt(w)) @ R.T
-    return Ellipse(A=A, b=-A @ center)
-
-
-def _contain(ellipse: Ellipse, z: FloatArray, *, max_violation: float) -> Ellipse:
-    """Scale the ellipse about its centre so that every point of `z` has level ≤ 1."""
-    worst = float(np.max(ellipse.level(z)))
-    if worst <= 1.0:
-        return ellipse
+    S = M.T @ M
+    root_det = np.sqrt(max(S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0], 0.0))
+    A = (S + root_det * np.eye(2)) / np.sqrt(S[0, 0] + S[1, 1] + 2.0 * root_det)
+    worst = float(np.sqrt(np.max(np.sum(((z - center) @ A) ** 2, axis=1))))
     if worst > 1.0 + max_violation:
         raise FitError(f"fitted ellipse misses a point by level {worst:.3g} (> 1 + {max_violation:g})")
-    factor = worst * (1.0 + 4.0 * np.finfo(float).eps)
-    A = ellipse.A / factor
-    return Ellipse(A=A, b=-A @ ellipse.center)
+    if worst > 1.0:
+        A = A / (worst * (1.0 + 4.0 * np.finfo(float).eps))
+    return Ellipse(A=A, b=-A @ center)
 
 
 # --------------------------------------------------------------------------- cvxpy route
@@ -160,8 +161,9 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
     A_unit = 0.5 * (A.value + A.value.T)
     if np.linalg.eigvalsh(A_unit)[0] <= 0.0:
         raise FitError(f"MVEE solve with {solver} returned a shape matrix that is not positive definite")
-    ellipse = _denormalise(A_unit, np.asarray(b.value, dtype=float), shift=shift, transform=transform)
-    return _contain(ellipse, z, max_violation=_MAX_SOLVER_VIOLATION)
+    return _ellipse(
+        A_unit, np.asarray(b.value, dtype=float), shift=shift, transform=transform, z=z, max_violation=_MAX_SOLVER_VIOLATION
+    )
 
 
 # --------------------------------------------------------------------------- numpy route
@@ -208,50 +210,57 @@ def _newton_polish(Q: FloatArray, u: FloatArray, *, tol: float, max_iter: int = 
     Gradient Mᵢ = qᵢᵀ X⁻¹ qᵢ, Hessian −(qᵢᵀ X⁻¹ qⱼ)²; each step solves the equality-constrained Newton
     system [[(K∘K), 1], [1ᵀ, 0]] [d; ν] = [M; 0] (least squares when it is singular, which happens when
     more than five points lie on the optimal ellipse, e.g. a regular polygon) and is truncated to keep
-    u ≥ 0, dropping the point that blocks. From a coarse Todd–Yildirim start on the right support this
-    converges quadratically; whatever it leaves unfinished the final Todd–Yildirim pass completes.
+    u ≥ 0, dropping the point that blocks. On the right support this converges quadratically; whatever
+    it leaves unfinished the final Todd–Yildirim pass completes.
     """
     u = u.copy()
     for _ in range(max_iter):
-        S = np.flatnonzero(u > 0.0)
-        Qs = Q[:, S]
-        K = Qs.T @ np.linalg.solve((Qs * u[S]) @ Qs.T, Qs)
-        g = np.diagonal(K)
-        if np.max(np.abs(g - _LIFT)) <= _LIFT * tol * 0.1:
+        S = np.flatnonzero(u)
+        Qs, us = Q[:, S], u[S]
+        K = Qs.T @ np.linalg.solve((Qs * us) @ Qs.T, Qs)
+        g = K.diagonal()
+        if np.abs(g - _LIFT).max() <= _LIFT * tol * 0.1:
             break
         n = len(S)
-        kkt = np.ones((n + 1, n + 1))
+        kkt = np.zeros((n + 1, n + 1))
         kkt[:n, :n] = K * K
-        kkt[n, n] = 0.0
-        rhs = np.append(g, 0.0)
+        kkt[n, :n] = kkt[:n, n] = 1.0
+        rhs = np.zeros(n + 1)
+        rhs[:n] = g
         try:
             d = np.linalg.solve(kkt, rhs)[:n]
         except np.linalg.LinAlgError:
             d = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:n]
-        us = u[S]
-        neg = d < 0.0
-        alpha = min(1.0, float(np.min(-us[neg] / d[neg]))) if np.any(neg) else 1.0
+        blocking = d < 0.0
+        alpha = min(1.0, float((-us[blocking] / d[blocking]).min(initial=np.inf)))
         us = us + alpha * d
         us[us < 1e-14] = 0.0
-        if not np.any(us > 0.0):
+        total = us.sum()
+        if total <= 0.0:
             break
-        u[S] = us / us.sum()
+        u[S] = us / total
     return u
 
 
 def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_iter: int = 100_000) -> Ellipse:
     """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy.
 
-    Todd–Yildirim iterations to a coarse tolerance, Newton polish on the support, then the full
-    Todd–Yildirim check: on return max Mᵢ ≤ 3 (1 + tol), which bounds the area above the optimum by a
+    Newton on the support from the Kumar–Yildirim start (Kumar & Yildirim 2005: the extreme points
+    along each axis; in whitened coordinates most of the support, so no Todd–Yildirim warm-up is
+    needed), Todd–Yildirim steps to bring in violators, then the full Todd–Yildirim check: on return max Mᵢ ≤ 3 (1 + tol), which bounds the area above the optimum by a
     factor (1 + tol) (Khachiyan's bound), and the ellipse is scaled to contain every point. From the
     optimal weights u: centre c = Σ uᵢ xᵢ, shape E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
     """
     z = _as_points(points)
     vertices, shift, transform = _support_points(z, eps_m=eps_m)
     Q = np.vstack([vertices.T, np.ones(len(vertices))])
-    u = np.full(len(vertices), 1.0 / len(vertices))
-    u, done = _todd_yildirim(Q, u, tol=max(tol, 3e-2), max_iter=max_iter)
+    # Kumar–Yildirim start: the extreme points along both (whitened) axes, usually most of the support.
+    u = np.zeros(len(vertices))
+    u[np.concatenate([np.argmin(vertices, axis=0), np.argmax(vertices, axis=0)])] = 1.0
+    if np.count_nonzero(u) < 3:  # a point extreme along both axes twice: no ellipse through two points
+        u[:] = 1.0
+    u /= u.sum()
+    done = False
     for _ in range(_ACTIVE_SET_ROUNDS):
         # Newton on the support; one Todd–Yildirim step then brings in a violator or drops a point.
         u = _newton_polish(Q, u, tol=tol)
@@ -268,5 +277,4 @@ def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_
     if w[0] <= 0.0:
         raise FitError("MVEE weights collapsed onto a degenerate support")
     A_unit = R @ np.diag(1.0 / np.sqrt(2.0 * w)) @ R.T
-    ellipse = _denormalise(A_unit, -A_unit @ c, shift=shift, transform=transform)
-    return _contain(ellipse, z, max_violation=max(1e-3, 10.0 * tol))
+    return _ellipse(A_unit, -A_unit @ c, shift=shift, transform=transform, z=z, max_violation=max(1e-3, 10.0 * tol))

@@ -1,5 +1,10 @@
 """The planner stage's pure core: check the straight reference (eq. 2), choose the way round globally,
-refine by convex optimisation, and check the refined path exactly before anyone smooths it."""
+refine by convex optimisation, and check the refined path exactly before anyone smooths it.
+
+A straight reference that is clear (eq. 2 at the planning level) and drivable (every leg along the
+start heading, so no turn at all) is already the shortest drivable path: it is returned as it is,
+sampled like a refined path, without running the refinement.
+"""
 
 from __future__ import annotations
 
@@ -11,9 +16,12 @@ from typing import Literal
 import numpy as np
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
-from services.planner.refine import RefineSettings, SolverFailure, refine
+from services.planner.refine import RefineSettings, SolverFailure, refine, resample_legs
 from services.planner.route import tangent_route
 from services.smoother.core import Smoothed
+
+
+_STRAIGHT_TOLERANCE_RAD = 1e-6  # legs and heading this close to parallel need no turn
 
 
 @dataclass(frozen=True)
@@ -31,6 +39,36 @@ def intersected(points: FloatArray, ellipses: list[Ellipse], *, level: float = 1
         return np.zeros(0, dtype=int)
     _, cols, levels = EllipseStack.of(ellipses).segment_pairs(points[:-1], points[1:])
     return np.unique(cols[levels < level])
+
+
+def _straight(
+    *,
+    start: FloatArray,
+    heading_rad: float | None,
+    goals: FloatArray,
+    ellipses: list[Ellipse],
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    settings: RefineSettings,
+) -> PathPlan | None:
+    """The straight line start → goals when it needs no turn and clears every ellipse, else None."""
+    reference = np.vstack([start, goals])
+    if np.any(reference < bounds_min) or np.any(reference > bounds_max):
+        return None
+    steps = np.diff(reference, axis=0)
+    lengths = np.linalg.norm(steps, axis=1)
+    if np.any(lengths <= 0.0):
+        return None
+    directions = steps / lengths[:, None]
+    if heading_rad is not None:
+        directions = np.vstack([[np.cos(heading_rad), np.sin(heading_rad)], directions])
+    if np.any(np.einsum("ij,ij->i", directions[:-1], directions[1:]) < np.cos(_STRAIGHT_TOLERANCE_RAD)):
+        return None
+    if len(intersected(reference, ellipses, level=settings.level)):
+        return None
+    n = int(np.ceil(lengths.sum() / settings.spacing_m)) + 1
+    points, goal_indices = resample_legs([reference[k : k + 2] for k in range(len(goals))], n=max(n, len(goals) + 2))
+    return PathPlan("ok", points, goal_indices)
 
 
 def _route(
@@ -90,6 +128,17 @@ def plan_path(
     if len(stack) and np.min(stack.levels(np.vstack([start, goals]))) < 1.0:
         inside = "start" if np.min(stack.levels(start)) < 1.0 else "a goal"
         return PathPlan("no_path", np.zeros((0, 2)), reason=f"{inside} lies inside an obstacle's grown ellipse")
+    straight = _straight(
+        start=start,
+        heading_rad=heading_rad,
+        goals=goals,
+        ellipses=ellipses,
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+        settings=settings,
+    )
+    if straight is not None:
+        return straight
     radius = 1.0 / (settings.curvature_factor * max_curvature)
     best: PathPlan | None = None
     best_slack = np.inf

@@ -1,15 +1,40 @@
-"""Global choice of the way round every obstacle: shortest route on a tangent graph.
+"""Global choice of the way round every obstacle: the exact shortest route among the ellipses.
 
 The outside constraint ‖A z + b‖ ≥ 1 is not convex, so a local method started from the straight line
 settles on whichever side of an obstacle it happens to start on, and a U-shaped group of obstacles
-traps it. The shortest path among convex obstacles is made of segments tangent to them and arcs along
-their boundaries; approximating each ellipse by a circumscribed polygon turns that into a visibility
-graph whose edges are polygon sides and segments tangent at both ends (the reduced visibility graph).
-Dijkstra on it picks the homotopy class globally; the convex refinement (`refine.py`) then straightens
-the route against the true ellipses.
+traps it. Among convex obstacles a shortest path is made of segments tangent to the obstacles (or
+ending at a terminal: the start or a goal) and arcs along their boundaries: the tangent graph (Liu &
+Arimoto 1992; Latombe, Robot Motion Planning, ch. 4). It is built here exactly, on the ellipses
+themselves scaled to the planning level ‖A z + b‖ = level (so the refinement starts on its own
+feasible set), rather than on polygons round them: a polygon's corners close marginal passages and
+move tangent points, and no polygon size is right for every map.
+
+* Common tangents of ellipses i and j. In i's unit-disc frame the tangent line at angle θ,
+  {x : nᵀx = 1} with n = (cos θ, sin θ), touches j (centre c, shape S there) exactly when
+  nᵀc ± √(nᵀSn) = 1 (j's support function: + an outer tangent, both on one side; − an inner one).
+  Squared, F(θ) = (1 − nᵀc)² − nᵀSn is a trigonometric polynomial of degree 2, a quartic in e^{iθ}:
+  at most four tangents. When j's bounding disc is clear of the unit circle (|c| > 1 + ρ, ρ² the
+  largest eigenvalue of S) there are exactly four, one of each sign in each of the windows
+  |θ − ∠c| ∈ [acos((1 + ρ)/|c|), acos((1 − ρ)/|c|)], where the sign is known at both ends: found by
+  safeguarded Newton. Close pairs (few: neighbours) bracket F's roots on a grid (`_trig_roots`).
+* Tangents from a terminal: at angles ∠q ± acos(1/|q|) for q the terminal in the unit-disc frame.
+* Arcs. Each ellipse's boundary is cut where another ellipse crosses it (‖M u(θ) + d‖² = 1, again a
+  degree-2 trigonometric polynomial) or a map bound does (a cosine); between consecutive cuts an arc
+  is wholly free or wholly blocked (how many obstacles cover it is counted round the boundary).
+  Consecutive tangent points on a free arc are joined by it, at its exact length (Gauss–Legendre on
+  the speed ‖A⁻¹ u′(θ)‖).
+
+Tangent points inside another ellipse are dropped; every remaining tangent segment is checked exactly
+against the other ellipses (eq. 2 on the continuous segment). Dijkstra then picks every side
+globally. Only points x with ‖x − from‖ + ‖x − to‖ ≤ bound can lie on a leg no longer than `bound`, so
+the graph is built within that informed ellipse, starting a little above the straight distance and
+widening it (to the length of a route found beyond the bound, else by a factor) until the leg found
+is within it — then it is the exact shortest. Tangents, cuts and segment tests are kept as it widens.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -17,51 +42,611 @@ from scipy.sparse.csgraph import dijkstra
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
 
-_CHUNK = 400_000  # node pairs tested at once: bounds the memory of the vectorised tangency test
-_EDGE_CHUNK = 5_000  # candidate edges tested at once against the ellipses near them
+_CHUNK = 20_000  # segments checked at once: bounds the memory of the broad phase
+_ROOT_TOL = 1e-6  # a quartic root this close to the unit circle is a real angle
+_BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding) is clear
+_ARC_PIECE_RAD = np.pi / 8  # Gauss–Legendre pieces for arc lengths
+_ARC_VERTEX_RAD = np.pi / 16  # polyline vertices of an arc in the route returned
+_BOUND_FACTORS = (1.03, 1.1, 1.2, 1.35, 1.6, 2.2, np.inf)  # informed-ellipse bounds tried, × the straight distance
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(6)
 
 
-def _polygon_vertices(stack: EllipseStack, *, sides: int, level: float) -> FloatArray:
-    """Vertices (m, sides, 2) of polygons circumscribing each ellipse scaled to ‖A z + b‖ = level.
+@dataclass(frozen=True)
+class Route:
+    """The shortest route, one polyline per leg, and each leg's exact length.
 
-    In the unit-disc frame a regular polygon with vertex radius level / cos(π / sides) has inscribed
-    radius `level`, so every point of its boundary is at level ≥ `level` from its own ellipse.
+    Arcs are polylines circumscribing the scaled ellipse (every chord tangent to it), so the whole
+    polyline stays at level ≥ `level`; its length exceeds the exact one by at most 1/cos(π/32) − 1.
     """
-    angles = 2.0 * np.pi * np.arange(sides) / sides
-    rho = level / np.cos(np.pi / sides)
-    unit = rho * np.column_stack([np.cos(angles), np.sin(angles)])
-    A_inv = np.linalg.inv(stack.A)
-    return np.einsum("mij,mkj->mki", A_inv, unit[None, :, :] - stack.b[:, None, :])
+
+    legs: list[FloatArray]
+    lengths_m: list[float]
 
 
-def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+@dataclass(frozen=True)
+class _Frames:
+    """The scaled ellipses {z : ‖A z + b‖ ≤ 1} with their inverses, centres and reaches."""
+
+    A: FloatArray
+    b: FloatArray
+    Ainv: FloatArray
+    centers: FloatArray
+    reach: FloatArray
+
+    @classmethod
+    def of(cls, stack: EllipseStack, scale: FloatArray) -> _Frames:
+        A = stack.A / scale[:, None, None]
+        b = stack.b / scale[:, None]
+        Ainv = np.linalg.inv(A)
+        return cls(A=A, b=b, Ainv=Ainv, centers=-np.einsum("mij,mj->mi", Ainv, b), reach=stack.reach * scale)
+
+    def point(self, owner: FloatArray, u: FloatArray) -> FloatArray:
+        """World points A⁻¹(u − b) of unit-frame points u on ellipses `owner`."""
+        return np.einsum("kij,kj->ki", self.Ainv[owner], u - self.b[owner])
+
+    def angle(self, owner: FloatArray, z: FloatArray) -> FloatArray:
+        u = np.einsum("kij,kj->ki", self.A[owner], z) + self.b[owner]
+        return np.mod(np.arctan2(u[:, 1], u[:, 0]), 2.0 * np.pi)
 
 
-def _candidate_edges(
-    points: FloatArray, prev: FloatArray, nxt: FloatArray, owner: FloatArray, on_polygon: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Pairs (i, j) whose segment is tangent to the polygon at each polygon-vertex end.
+def _unit(theta: FloatArray) -> FloatArray:
+    return np.stack([np.cos(theta), np.sin(theta)], axis=-1)
 
-    A segment through vertex p is tangent when both polygon neighbours of p lie on one side of its
-    line; any other segment through p enters the polygon, so it can never be part of a shortest path.
+
+def _trig(coef: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """a₀ + a₁ cos θ + b₁ sin θ + a₂ cos 2θ + b₂ sin 2θ and its derivative; coef (..., 5) broadcast on θ."""
+    a0, a1, b1, a2, b2 = (coef[..., k, None] for k in range(5))
+    c, s, c2, s2 = np.cos(theta), np.sin(theta), np.cos(2 * theta), np.sin(2 * theta)
+    return a0 + a1 * c + b1 * s + a2 * c2 + b2 * s2, -a1 * s + b1 * c - 2 * a2 * s2 + 2 * b2 * c2
+
+
+def _quadratic_form_coef(K: FloatArray, e: FloatArray, const: FloatArray) -> FloatArray:
+    """uᵀK u + 2 eᵀu + const with u = (cos θ, sin θ), as trigonometric coefficients (..., 5)."""
+    return np.stack(
+        [
+            0.5 * (K[:, 0, 0] + K[:, 1, 1]) + const,
+            2.0 * e[:, 0],
+            2.0 * e[:, 1],
+            0.5 * (K[:, 0, 0] - K[:, 1, 1]),
+            K[:, 0, 1],
+        ],
+        axis=-1,
+    )
+
+
+def _bracketed_root(g, lo: FloatArray, hi: FloatArray, start: FloatArray | None = None) -> FloatArray:
+    """Roots of g (value and derivative at (θ, indices)) in brackets [lo, hi] with a sign change.
+
+    Newton steps from `start` (default: the middles) that leave the bracket become bisections
+    (safeguarded Newton), element by element.
     """
-    n = len(points)
-    rows_i, rows_j = [], []
-    ii, jj = np.triu_indices(n, k=1)
-    different = (owner[ii] != owner[jj]) | (owner[ii] < 0)
-    ii, jj = ii[different], jj[different]
-    for lo in range(0, len(ii), _CHUNK):
-        i, j = ii[lo : lo + _CHUNK], jj[lo : lo + _CHUNK]
-        d = points[j] - points[i]
-        ok = np.ones(len(i), dtype=bool)
-        for end, sign in ((i, 1.0), (j, -1.0)):
-            s1 = _cross(sign * d, prev[end] - points[end])
-            s2 = _cross(sign * d, nxt[end] - points[end])
-            ok &= ~on_polygon[end] | (s1 * s2 >= -1e-12)
-        rows_i.append(i[ok])
-        rows_j.append(j[ok])
-    return np.concatenate(rows_i), np.concatenate(rows_j)
+    lo, hi = lo.copy(), hi.copy()
+    every = np.arange(len(lo))
+    f_lo = g(lo, every)[0]
+    x = 0.5 * (lo + hi) if start is None else np.clip(start, np.minimum(lo, hi), np.maximum(lo, hi))
+    active = every
+    for _ in range(60):
+        xa, la, ha = x[active], lo[active], hi[active]
+        f, df = g(xa, active)
+        same = np.sign(f) == np.sign(f_lo[active])
+        la, ha = np.where(same, xa, la), np.where(same, ha, xa)
+        f_lo[active] = np.where(same, f, f_lo[active])
+        step = xa - f / np.where(df != 0.0, df, 1.0)
+        inside = (step >= np.minimum(la, ha)) & (step <= np.maximum(la, ha)) & (df != 0.0)
+        new = np.where(inside, step, 0.5 * (la + ha))
+        x[active], lo[active], hi[active] = new, la, ha
+        active = active[np.abs(new - xa) >= 1e-13]
+        if not len(active):
+            break
+    return x
+
+
+_GRID = 2.0 * np.pi * np.arange(128) / 128
+_GRID_BASIS = np.stack([np.ones(128), np.cos(_GRID), np.sin(_GRID), np.cos(2 * _GRID), np.sin(2 * _GRID)])
+
+
+def _companion_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """All real roots by the quartic in z = e^{iθ}: z² times the polynomial is
+    (a₂ − i b₂)/2 z⁴ + (a₁ − i b₁)/2 z³ + a₀ z² + (a₁ + i b₁)/2 z + (a₂ + i b₂)/2,
+    whose roots on the unit circle are the real roots (then polished by Newton on the real function).
+    """
+    a0, a1, b1, a2, b2 = (coef[:, k] for k in range(5))
+    poly = np.stack([(a2 - 1j * b2) / 2, (a1 - 1j * b1) / 2, a0 + 0j, (a1 + 1j * b1) / 2, (a2 + 1j * b2) / 2], axis=1)
+    scale = np.max(np.abs(poly), axis=1)
+    lead = poly[:, 0]
+    lead = np.where(np.abs(lead) > 1e-13 * scale, lead, 1e-13 * scale + 0j)
+    companion = np.zeros((len(coef), 4, 4), dtype=complex)
+    companion[:, 0, :] = -poly[:, 1:] / lead[:, None]
+    companion[:, 1, 0] = companion[:, 2, 1] = companion[:, 3, 2] = 1.0
+    z = np.linalg.eigvals(companion) if len(coef) else np.zeros((0, 4), dtype=complex)
+    real = np.abs(np.abs(z) - 1.0) < _ROOT_TOL
+    theta = np.angle(z)
+    for _ in range(3):
+        f, df = _trig(coef, theta)
+        theta = theta - np.where(np.abs(df) > 1e-12, f / np.where(np.abs(df) > 1e-12, df, 1.0), 0.0)
+    return np.mod(theta, 2.0 * np.pi), real
+
+
+def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Real roots θ (k, 4) of each degree-2 trigonometric polynomial, and which are real (k, 4).
+
+    Sign changes on a 128-point grid bracket the roots, refined by safeguarded Newton. Two roots r₁, r₂
+    in one grid step [t, t + h] make F(x) = (x − r₁)(x − r₂) F″(ξ)/2 there, so |F| ≤ max|F″| h²/2 at
+    both ends of the step (F″ is bounded by |a₁| + |b₁| + 4(|a₂| + |b₂|)); the few polynomials with
+    such a step (near-tangent crossings) take the companion-matrix route instead.
+    """
+    k = len(coef)
+    h = _GRID[1]
+    values = coef @ _GRID_BASIS
+    curvature = np.abs(coef[:, 1]) + np.abs(coef[:, 2]) + 4.0 * (np.abs(coef[:, 3]) + np.abs(coef[:, 4]))
+    small = np.abs(values) <= 0.5 * curvature[:, None] * h * h
+    hidden = np.any(small & np.roll(small, -1, axis=1), axis=1)
+    change = (np.sign(values) != np.sign(np.roll(values, -1, axis=1))) & ~hidden[:, None]
+    rows, cols = np.nonzero(change)
+    slot = np.arange(len(rows)) - np.searchsorted(rows, rows)
+    keep = slot < 4
+    rows, cols, slot = rows[keep], cols[keep], slot[keep]
+    theta = np.zeros((k, 4))
+    real = np.zeros((k, 4), dtype=bool)
+
+    def g(x, idx):
+        f, df = _trig(coef[rows[idx]], x[:, None])
+        return f[:, 0], df[:, 0]
+
+    theta[rows, slot] = _bracketed_root(g, _GRID[cols], _GRID[cols] + h)
+    real[rows, slot] = True
+    fallback = np.flatnonzero(hidden)
+    if len(fallback):
+        theta[fallback], real[fallback] = _companion_roots(coef[fallback])
+    return np.mod(theta, 2.0 * np.pi), real
+
+
+def _window_roots(
+    D: FloatArray, phi: FloatArray, S: FloatArray, sign: float, lo: FloatArray, hi: FloatArray
+) -> FloatArray:
+    """The root of g(θ) = D cos(θ − φ) − 1 + sign·√(nᵀSn) bracketed by [lo, hi]."""
+    s11, s12, s22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+
+    def g(theta, k):
+        c, s = np.cos(theta), np.sin(theta)
+        h = np.sqrt(s11[k] * c * c + 2.0 * s12[k] * c * s + s22[k] * s * s)
+        dh = ((s22[k] - s11[k]) * c * s + s12[k] * (c * c - s * s)) / h
+        return D[k] * np.cos(theta - phi[k]) - 1.0 + sign * h, -D[k] * np.sin(theta - phi[k]) + sign * dh
+
+    # Start from the root for a circle of j's radius √(nᵀSn) at the window's middle: Newton then
+    # needs about three steps.
+    mid = 0.5 * (lo + hi)
+    radius = np.sqrt(s11 * np.cos(mid) ** 2 + 2.0 * s12 * np.cos(mid) * np.sin(mid) + s22 * np.sin(mid) ** 2)
+    side = np.sign(np.sin(mid - phi))
+    start = phi + side * np.arccos(np.clip((1.0 - sign * radius) / D, -1.0, 1.0))
+    return _bracketed_root(g, lo, hi, start)
+
+
+@dataclass
+class _Segments:
+    """Candidate tangent segments: end points, owning ellipses (−1 − k for terminal k), unit-frame angles."""
+
+    p: FloatArray
+    q: FloatArray
+    owner_p: FloatArray
+    owner_q: FloatArray
+    theta_p: FloatArray
+    theta_q: FloatArray
+
+    @classmethod
+    def concat(cls, parts: list[_Segments]) -> _Segments:
+        return cls(*(np.concatenate([getattr(s, f) for s in parts]) for f in ("p", "q", "owner_p", "owner_q", "theta_p", "theta_q")))
+
+    def take(self, keep: FloatArray) -> _Segments:
+        return _Segments(self.p[keep], self.q[keep], self.owner_p[keep], self.owner_q[keep], self.theta_p[keep], self.theta_q[keep])
+
+
+def _pair_tangents(frames: _Frames, i: FloatArray, j: FloatArray) -> _Segments:
+    """Every common tangent of the ellipse pairs (i, j)."""
+    Q = np.einsum("kij,klj->kil", frames.Ainv[j], frames.Ainv[j])  # j's shape matrix
+    c = np.einsum("kij,kj->ki", frames.A[i], frames.centers[j]) + frames.b[i]  # j's centre in i's frame
+    S = np.einsum("kij,kjl,kml->kim", frames.A[i], Q, frames.A[i])  # j's shape in i's frame
+    D = np.linalg.norm(c, axis=1)
+    rho = np.sqrt(0.5 * (S[:, 0, 0] + S[:, 1, 1] + np.hypot(S[:, 0, 0] - S[:, 1, 1], 2.0 * S[:, 0, 1])))
+    far = D > (1.0 + rho) * (1.0 + 1e-9)
+    thetas, signs, rows = [], [], []
+    f = np.flatnonzero(far)
+    if len(f):
+        phi = np.arctan2(c[f, 1], c[f, 0])
+        # Widened a little: for a circle (√(nᵀSn) = ρ everywhere) the roots sit exactly at the ends.
+        a1 = np.arccos(np.clip((1.0 + rho[f]) / D[f], -1.0, 1.0)) - 1e-7
+        a2 = np.arccos(np.clip((1.0 - rho[f]) / D[f], -1.0, 1.0)) + 1e-7
+        for sign in (1.0, -1.0):
+            for lo, hi in ((phi + a1, phi + a2), (phi - a2, phi - a1)):
+                thetas.append(_window_roots(D[f], phi, S[f], sign, lo, hi))
+                signs.append(np.full(len(f), sign))
+                rows.append(f)
+    n_ = np.flatnonzero(~far)
+    if len(n_):
+        cc = c[n_]
+        P = cc[:, 0] ** 2 - S[n_, 0, 0]
+        R = cc[:, 1] ** 2 - S[n_, 1, 1]
+        Qx = cc[:, 0] * cc[:, 1] - S[n_, 0, 1]
+        coef = np.stack([1.0 + 0.5 * (P + R), -2.0 * cc[:, 0], -2.0 * cc[:, 1], 0.5 * (P - R), Qx], axis=1)
+        roots, real = _trig_roots(coef)
+        k, slot = np.nonzero(real)
+        th = roots[k, slot]
+        side = 1.0 - np.einsum("ki,ki->k", _unit(th), cc[k])
+        thetas.append(th)
+        signs.append(np.where(side >= 0.0, 1.0, -1.0))
+        rows.append(n_[k])
+    if not thetas:
+        return _Segments(*(np.zeros((0, 2)),) * 2, *(np.zeros(0, dtype=int),) * 2, *(np.zeros(0),) * 2)
+    theta, sign, row = np.concatenate(thetas), np.concatenate(signs), np.concatenate(rows)
+    n = _unit(theta)
+    Sn = np.einsum("kij,kj->ki", S[row], n)
+    h = np.sqrt(np.einsum("ki,ki->k", n, Sn))
+    touch = c[row] + sign[:, None] * Sn / h[:, None]
+    p = frames.point(i[row], n)
+    q = frames.point(i[row], touch)
+    return _Segments(p, q, i[row], j[row], np.mod(theta, 2.0 * np.pi), frames.angle(j[row], q))
+
+
+def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e: FloatArray) -> _Segments:
+    """Both tangents from terminal k to ellipse e, for each pair (k, e) with the terminal outside."""
+    q = np.einsum("kij,kj->ki", frames.A[e], terminals[k]) + frames.b[e]
+    r = np.linalg.norm(q, axis=1)
+    outside = r > 1.0
+    k, e, q, r = k[outside], e[outside], q[outside], r[outside]
+    phi = np.arctan2(q[:, 1], q[:, 0])
+    half = np.arccos(1.0 / r)
+    theta = np.concatenate([phi - half, phi + half])
+    kk, ee = np.concatenate([k, k]), np.concatenate([e, e])
+    z = frames.point(ee, _unit(theta))
+    return _Segments(terminals[kk], z, -1 - kk, ee, np.zeros(len(kk)), np.mod(theta, 2.0 * np.pi))
+
+
+_EDGE_RAD = 1e-9  # a cut's side is read this far either side of it
+
+
+def _bound_sources(frames: _Frames, owner: FloatArray, bounds_min: FloatArray, bounds_max: FloatArray):
+    """Each bound as a cosine R cos(θ − ψ) + c − bound of ellipse `owner`'s boundary coordinate,
+    covering where it is > 0 (past the bound): (R, ψ, offset, outward sign) per (owner, bound)."""
+    out = []
+    Ainv, centers = frames.Ainv[owner], frames.centers[owner]
+    for axis in range(2):
+        R = np.hypot(Ainv[:, axis, 0], Ainv[:, axis, 1])
+        psi = np.arctan2(Ainv[:, axis, 1], Ainv[:, axis, 0])
+        for bound, outward in ((bounds_min[axis], -1.0), (bounds_max[axis], 1.0)):
+            out.append((R, psi, centers[:, axis] - bound, outward))
+    return out
+
+
+def _cuts(frames: _Frames, stack: EllipseStack, bounds_min: FloatArray, bounds_max: FloatArray, relevant: FloatArray):
+    """Where each relevant ellipse's boundary is crossed by another ellipse or a bound.
+
+    Returns (owner, θ, Δ) per cut, Δ = +1 where the boundary enters the other ellipse (or leaves the
+    bounds), −1 where it leaves, 0 at a touch; and (i, coef) for each pair of ellipses that may
+    overlap: ‖Aⱼ z(θ) + bⱼ‖² − 1 along i's boundary as trigonometric coefficients.
+    """
+    owners, thetas, deltas = [], [], []
+    i, j = stack.near_pairs(frames.centers[relevant], frames.reach[relevant])
+    i = relevant[i]
+    keep = i != j
+    i, j = i[keep], j[keep]
+    # Separating axis along the centre line: projections that do not overlap mean no crossing.
+    d = frames.centers[j] - frames.centers[i]
+    Ai, Aj = frames.Ainv[i], frames.Ainv[j]
+    support = np.linalg.norm(np.einsum("kij,ki->kj", Ai, d), axis=1) + np.linalg.norm(np.einsum("kij,ki->kj", Aj, d), axis=1)
+    keep = np.einsum("ki,ki->k", d, d) <= support * (1.0 + 1e-9)
+    i, j = i[keep], j[keep]
+    M = np.einsum("kij,kjl->kil", frames.A[j], frames.Ainv[i])
+    d = np.einsum("kij,kj->ki", frames.A[j], frames.centers[i]) + frames.b[j]
+    coef = _quadratic_form_coef(
+        np.einsum("kji,kjl->kil", M, M), np.einsum("kji,kj->ki", M, d), np.einsum("ki,ki->k", d, d) - 1.0
+    )
+    if len(i):
+        roots, real = _trig_roots(coef)
+        k, slot = np.nonzero(real)
+        theta = roots[k, slot]
+        after = _trig(coef[k], (theta + _EDGE_RAD)[:, None])[0][:, 0] < 0.0
+        before = _trig(coef[k], (theta - _EDGE_RAD)[:, None])[0][:, 0] < 0.0
+        owners.append(i[k])
+        thetas.append(theta)
+        deltas.append(after.astype(int) - before.astype(int))
+    for R, psi, offset, outward in _bound_sources(frames, relevant, bounds_min, bounds_max):
+        ratio = -offset / R
+        hit = np.abs(ratio) < 1.0
+        half = np.arccos(ratio[hit])
+        for theta in (psi[hit] + half, psi[hit] - half):
+            past = [outward * (R[hit] * np.cos(t - psi[hit]) + offset[hit]) > 0.0 for t in (theta + _EDGE_RAD, theta - _EDGE_RAD)]
+            owners.append(relevant[hit])
+            thetas.append(theta)
+            deltas.append(past[0].astype(int) - past[1].astype(int))
+    owner = np.concatenate(owners) if owners else np.zeros(0, dtype=int)
+    theta = np.mod(np.concatenate(thetas), 2.0 * np.pi) if thetas else np.zeros(0)
+    delta = np.concatenate(deltas) if deltas else np.zeros(0, dtype=int)
+    return owner, theta, delta, i, coef
+
+
+class _Arcs:
+    """Free and blocked arcs of each ellipse's boundary between consecutive cuts.
+
+    How many ellipses (and bounds) cover an arc is counted at one point of each boundary — the middle
+    of its wrap-round arc, away from every cut — and carried round by the cuts' Δ: an arc is free where
+    the count is 0.
+    """
+
+    def __init__(self, frames: _Frames, cuts, covered: FloatArray, bounds_min, bounds_max) -> None:
+        """`cuts` from `_cuts` for the ellipses `covered` (a mask); the others get no free arc."""
+        m = len(frames.A)
+        owner, theta, delta, pair_i, pair_coef = cuts
+        order = np.lexsort((theta, owner))
+        self.owner, self.theta, delta = owner[order], theta[order], delta[order]
+        self.count = np.bincount(self.owner, minlength=m)
+        self.first = np.concatenate([[0], np.cumsum(self.count)[:-1]])
+        # One arc per cut (from it to the next, the last wrapping round), or the whole boundary.
+        arcs_of = np.maximum(self.count, 1)
+        self.arc_first = np.concatenate([[0], np.cumsum(arcs_of)[:-1]])
+        has = self.count > 0
+        reference = np.zeros(m)
+        last = self.first[has] + self.count[has] - 1
+        reference[has] = 0.5 * (self.theta[last] + self.theta[self.first[has]] + 2.0 * np.pi)
+        base = np.zeros(m, dtype=int)
+        if len(pair_i):
+            inside = _trig(pair_coef, reference[pair_i][:, None])[0][:, 0] < 0.0
+            np.add.at(base, pair_i[inside], 1)
+        every = np.arange(m)
+        for R, psi, offset, outward in _bound_sources(frames, every, bounds_min, bounds_max):
+            base += outward * (R * np.cos(reference - psi) + offset) > 0.0
+        # Arc k of an ellipse starts at its cut k: count = base + Δ₀ + … + Δₖ (the last arc: base).
+        running = np.cumsum(delta) - np.repeat(np.cumsum(delta)[self.first[has]] - delta[self.first[has]], self.count[has])
+        coverage = np.repeat(base, arcs_of)
+        cut_arcs = self.arc_first[self.owner] + np.arange(len(self.owner)) - self.first[self.owner]
+        coverage[cut_arcs] += running
+        self.free = (coverage == 0) & np.repeat(covered, arcs_of)
+
+    def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
+        count = self.count[owner]
+        r = np.zeros(len(owner), dtype=int)
+        if len(self.theta):
+            key_cuts = self.owner * 8.0 + self.theta
+            r = np.searchsorted(key_cuts, owner * 8.0 + theta, side="right") - self.first[owner]
+        wrap = (count > 0) & (r == 0)
+        local = np.where(count > 0, (r - 1) % np.maximum(count, 1), 0)
+        unwrapped = np.where(wrap, theta + 2.0 * np.pi, theta)
+        return self.arc_first[owner] + local, unwrapped
+
+
+def _arc_length(frames: _Frames, owner: FloatArray, start: FloatArray, span: FloatArray) -> FloatArray:
+    """∫ ‖A⁻¹ u′(θ)‖ dθ from `start` over `span` (signed) on each scaled ellipse (Gauss–Legendre)."""
+    pieces = np.maximum(1, np.ceil(np.abs(span) / _ARC_PIECE_RAD).astype(int))
+    arc = np.repeat(np.arange(len(owner)), pieces)
+    k = np.arange(len(arc)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    width = (span / pieces)[arc]
+    theta = start[arc, None] + width[:, None] * (k[:, None] + 0.5 * (_GL_NODES[None, :] + 1.0))
+    du = np.stack([-np.sin(theta), np.cos(theta)], axis=-1)
+    speed = np.linalg.norm(np.einsum("kij,knj->kni", frames.Ainv[owner[arc]], du), axis=2)
+    return np.bincount(arc, weights=0.5 * np.abs(width) * (speed @ _GL_WEIGHTS), minlength=len(owner))
+
+
+def _arc_polyline(frames: _Frames, owner: int, start: float, span: float) -> FloatArray:
+    """Points of the arc from `start` over `span` (signed), chords tangent to the ellipse, ends on it."""
+    pieces = max(1, int(np.ceil(abs(span) / _ARC_VERTEX_RAD)))
+    step = span / pieces
+    angles = start + step * (np.arange(pieces) + 0.5)
+    u = np.vstack([_unit(np.array([start])), _unit(angles) / np.cos(0.5 * step), _unit(np.array([start + span]))])
+    return frames.point(np.full(len(u), owner), u)
+
+
+class _TangentGraph:
+    """The tangent graph, built within the legs' informed ellipses and grown as their bounds widen.
+
+    Tangents, cuts and segment tests do not depend on the bound, so each is computed once: a wider
+    bound only adds the pairs, ellipses and segments it newly lets in.
+    """
+
+    def __init__(self, *, frames: _Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max) -> None:
+        self.frames, self.stack, self.terminals = frames, stack, terminals
+        self.bounds_min, self.bounds_max = bounds_min, bounds_max
+        m, t = len(frames.A), len(terminals)
+        self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
+        self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
+        self.pair_done = np.zeros(0, dtype=np.int64)  # sorted keys i·m + j of the pairs with tangents
+        kk, ee = np.meshgrid(np.arange(t), np.arange(m), indexing="ij")
+        tk, tl = np.triu_indices(t, k=1)
+        self.segments = _Segments.concat([
+            _terminal_tangents(frames, terminals, kk.ravel(), ee.ravel()),
+            _Segments(terminals[tk], terminals[tl], -1 - tk, -1 - tl, np.zeros(len(tk)), np.zeros(len(tk))),
+        ])
+        self.status = np.zeros(len(self.segments.p), dtype=np.int8)  # 0 untested, 1 clear, 2 blocked
+
+    def _informed(self, bound: FloatArray, x: FloatArray, extra, y: FloatArray) -> FloatArray:
+        """Whether a path through x (then `extra` further, then y) can fit some leg's bound."""
+        a, z = self.terminals[:-1], self.terminals[1:]
+        ok = np.zeros(len(x), dtype=bool)
+        for leg in range(len(a)):
+            if bound[leg] <= 0.0:
+                continue
+            if not np.isfinite(bound[leg]):
+                return np.ones(len(x), dtype=bool)
+            forward = np.linalg.norm(x - a[leg], axis=1) + extra + np.linalg.norm(y - z[leg], axis=1)
+            backward = np.linalg.norm(y - a[leg], axis=1) + extra + np.linalg.norm(x - z[leg], axis=1)
+            ok |= np.minimum(forward, backward) <= bound[leg] * (1.0 + 1e-12)
+        return ok
+
+    def _grow(self, bound: FloatArray) -> None:
+        """Cuts of the ellipses and tangents of the pairs that the bound newly lets in."""
+        frames, m = self.frames, len(self.frames.A)
+        c, r = frames.centers, frames.reach
+        # Ellipses that reach into some leg's informed ellipse (distance to a centre minus the reach).
+        relevant = np.flatnonzero(self._informed(bound, c, -2.0 * r, c))
+        new = relevant[~self.covered[relevant]]
+        if len(new):
+            parts = _cuts(frames, self.stack, self.bounds_min, self.bounds_max, new)
+            self.cuts = tuple(np.concatenate([old, part]) for old, part in zip(self.cuts, parts))
+            self.covered[new] = True
+        # Pairs none of whose tangents fits a leg: a path through p ∈ i and q ∈ j is at least
+        # ‖from − cᵢ‖ − rᵢ + gap(discs) + ‖cⱼ − to‖ − rⱼ long (either way round).
+        ii, jj = np.triu_indices(len(relevant), k=1)
+        ii, jj = relevant[ii], relevant[jj]
+        gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
+        keep = self._informed(bound, c[ii], gap - r[ii] - r[jj], c[jj])
+        ii, jj = ii[keep], jj[keep]
+        keys = ii.astype(np.int64) * m + jj
+        fresh = ~np.isin(keys, self.pair_done, assume_unique=True)
+        if np.any(fresh):
+            added = _pair_tangents(frames, ii[fresh], jj[fresh])
+            self.segments = _Segments.concat([self.segments, added])
+            self.status = np.concatenate([self.status, np.zeros(len(added.p), dtype=np.int8)])
+            self.pair_done = np.union1d(self.pair_done, keys[fresh])
+
+    def build(self, bound: FloatArray):
+        """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
+        self._grow(bound)
+        frames, t = self.frames, len(self.terminals)
+        arcs = _Arcs(frames, self.cuts, self.covered, self.bounds_min, self.bounds_max)
+        all_seg = self.segments
+        length_all = np.linalg.norm(all_seg.q - all_seg.p, axis=1)
+        pick = np.flatnonzero((self.status != 2) & self._informed(bound, all_seg.p, length_all, all_seg.q))
+        seg, length = all_seg.take(pick), length_all[pick]
+
+        # Tangent points must lie on a free arc (outside every other ellipse, inside the bounds).
+        arc_p = np.full(len(seg.p), -1)
+        arc_q = np.full(len(seg.p), -1)
+        unw_p, unw_q = seg.theta_p.copy(), seg.theta_q.copy()
+        on_p, on_q = seg.owner_p >= 0, seg.owner_q >= 0
+        arc_p[on_p], unw_p[on_p] = arcs.locate(seg.owner_p[on_p], seg.theta_p[on_p])
+        arc_q[on_q], unw_q[on_q] = arcs.locate(seg.owner_q[on_q], seg.theta_q[on_q])
+        valid = (~on_p | arcs.free[np.maximum(arc_p, 0)]) & (~on_q | arcs.free[np.maximum(arc_q, 0)])
+        self.status[pick[~valid]] = 2
+
+        # Exact segment test against every ellipse but the two it touches, once per segment.
+        untested = np.flatnonzero(valid & (self.status[pick] == 0))
+        for lo in range(0, len(untested), _CHUNK):
+            k = untested[lo : lo + _CHUNK]
+            rows, cols, levels = self.stack.segment_pairs(seg.p[k], seg.q[k])
+            hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[k][rows]) & (cols != seg.owner_q[k][rows])
+            blocked = np.zeros(len(k), dtype=bool)
+            blocked[rows[hit]] = True
+            self.status[pick[k]] = np.where(blocked, 2, 1)
+        keep = self.status[pick] == 1
+        seg, length = seg.take(keep), length[keep]
+        arc_p, arc_q, unw_p, unw_q = arc_p[keep], arc_q[keep], unw_p[keep], unw_q[keep]
+        return self._assemble(seg, length, arcs, arc_p, arc_q, unw_p, unw_q)
+
+    def _assemble(self, seg, length, arcs, arc_p, arc_q, unw_p, unw_q):
+        frames, t, terminals = self.frames, len(self.terminals), self.terminals
+        # Nodes: terminals 0 … t − 1, then both ends of every segment that touch an ellipse.
+        s = len(seg.p)
+        node_p = np.where(seg.owner_p < 0, -1 - seg.owner_p, t + np.arange(s))
+        node_q = np.where(seg.owner_q < 0, -1 - seg.owner_q, t + s + np.arange(s))
+        points = np.vstack([terminals, seg.p, seg.q])
+        owner = np.concatenate([np.full(t, -1), seg.owner_p, seg.owner_q])
+        unwrapped = np.concatenate([np.zeros(t), unw_p, unw_q])
+        arc = np.concatenate([np.full(t, -1), arc_p, arc_q])
+        # Arcs: consecutive tangent points of one free arc, in angle order.
+        on = np.flatnonzero(owner >= 0)
+        on = on[np.lexsort((unwrapped[on], arc[on]))]
+        consecutive = arc[on[:-1]] == arc[on[1:]]
+        u, v = on[:-1][consecutive], on[1:][consecutive]
+        arc_len = _arc_length(frames, owner[u], unwrapped[u], unwrapped[v] - unwrapped[u])
+        # An ellipse with no cut is one free loop: also join its last tangent point to its first.
+        whole = arcs.count[owner[on]] == 0
+        ends = on[whole]
+        if len(ends):
+            o = owner[ends]
+            last = np.r_[o[1:] != o[:-1], True]
+            firstm = np.r_[True, o[1:] != o[:-1]]
+            lu, fv = ends[last], ends[firstm]
+            two = lu != fv
+            lu, fv = lu[two], fv[two]
+            wrap_len = _arc_length(frames, owner[lu], unwrapped[lu], unwrapped[fv] + 2.0 * np.pi - unwrapped[lu])
+            u, v = np.concatenate([u, lu]), np.concatenate([v, fv])
+            arc_len = np.concatenate([arc_len, wrap_len])
+        i = np.concatenate([node_p, u])
+        j = np.concatenate([node_q, v])
+        w = np.concatenate([length, arc_len]) + 1e-12  # explicit zeros would be no edge
+        # Keep the shorter of parallel edges (two arcs joining the only two points of a loop).
+        lo_, hi_ = np.minimum(i, j), np.maximum(i, j)
+        order = np.lexsort((w, hi_, lo_))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = (lo_[order][1:] != lo_[order][:-1]) | (hi_[order][1:] != hi_[order][:-1])
+        order = order[first]
+        n = len(points)
+        graph = coo_matrix((w[order], (lo_[order], hi_[order])), shape=(n, n)).tocsr()
+        return graph, points, owner, unwrapped
+
+
+def _polyline(frames: _Frames, graph, points, owner, unwrapped, chain: list[int]) -> FloatArray:
+    """The route's points along the node chain: tangent segments straight, arcs circumscribed."""
+    out = [points[chain[:1]]]
+    for a, b in zip(chain[:-1], chain[1:]):
+        if owner[a] >= 0 and owner[a] == owner[b]:
+            direct = unwrapped[b] - unwrapped[a]
+            around = direct - np.sign(direct) * 2.0 * np.pi
+            spans = np.array([direct, around])
+            lengths = _arc_length(frames, np.full(2, owner[a]), np.full(2, unwrapped[a]), spans)
+            span = spans[int(np.argmin(np.abs(lengths - graph[min(a, b), max(a, b)])))]
+            out.append(_arc_polyline(frames, int(owner[a]), float(unwrapped[a]), float(span))[1:])
+        else:
+            out.append(points[[b]])
+    return np.vstack(out)
+
+
+def shortest_route(
+    *,
+    start: FloatArray,
+    goals: FloatArray,
+    ellipses: list[Ellipse],
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    level: float = 1.01,
+) -> Route | None:
+    """The exact shortest route start → goal₁ → … outside every ellipse scaled to `level`; None if none.
+
+    An ellipse that would contain a terminal at `level` is scaled only as far as leaves the terminal
+    outside (never below the ellipse itself), so a robot just inside a margin can still leave.
+    """
+    start = np.asarray(start, dtype=float)
+    goals = np.atleast_2d(np.asarray(goals, dtype=float))
+    bounds_min, bounds_max = np.asarray(bounds_min, dtype=float), np.asarray(bounds_max, dtype=float)
+    terminals = np.vstack([start, goals])
+    stack = EllipseStack.of(ellipses)
+    if len(stack):
+        nearest = np.min(stack.levels(terminals), axis=0)
+        scale = np.maximum(np.minimum(level, nearest * (1.0 - 1e-9)), 1.0)
+    else:
+        scale = np.zeros(0)
+    frames = _Frames.of(stack, scale)
+    scaled = EllipseStack(A=frames.A, b=frames.b)
+    straight = np.linalg.norm(np.diff(terminals, axis=0), axis=1)
+    legs: list[FloatArray | None] = [None] * len(goals)
+    lengths = [np.inf] * len(goals)
+    # Each leg's bound: the next factor, or the length of a route found beyond the last bound (any
+    # route is an upper bound, and a tighter one than the next factor).
+    step = np.zeros(len(goals), dtype=int)
+    bound = _BOUND_FACTORS[0] * straight + 1e-9
+    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min, bounds_max=bounds_max)
+    while True:
+        todo = [k for k in range(len(goals)) if legs[k] is None]
+        if not todo:
+            return Route(legs=legs, lengths_m=lengths)
+        active = np.where(np.isin(np.arange(len(goals)), todo), bound, 0.0)
+        graph, points, owner, unwrapped = tangents.build(active)
+        dist, pred = dijkstra(graph, directed=False, indices=todo, return_predecessors=True)
+        for row, leg in enumerate(todo):
+            target = leg + 1
+            found = dist[row, target]
+            if np.isfinite(found) and found <= bound[leg]:
+                chain = [target]
+                while chain[-1] != leg:
+                    chain.append(int(pred[row, chain[-1]]))
+                legs[leg] = _polyline(frames, graph, points, owner, unwrapped, chain[::-1])
+                lengths[leg] = float(found)
+            elif not np.isfinite(bound[leg]):
+                return None  # the whole graph has no route
+            elif np.isfinite(found):
+                bound[leg] = found * (1.0 + 1e-9)
+            else:
+                step[leg] += 1
+                bound[leg] = _BOUND_FACTORS[step[leg]] * straight[leg] + 1e-9
 
 
 def tangent_route(
@@ -71,77 +656,13 @@ def tangent_route(
     ellipses: list[Ellipse],
     bounds_min: FloatArray,
     bounds_max: FloatArray,
-    sides: int = 16,
-    level: float = 1.02,
+    level: float = 1.01,
 ) -> list[FloatArray] | None:
     """Shortest polylines start → goal₁ → … (one per leg) outside every ellipse; None if there is none.
 
-    The polyline runs along the sides of the circumscribed polygons (at level ≥ `level`) and along
-    segments that clear every ellipse exactly (eq. 2 on the continuous segment). Its vertices stay inside
-    the bounds, so the whole route does.
+    The polyline stays at level ≥ `level` (arcs circumscribed, tangents exact), inside the bounds.
     """
-    start = np.asarray(start, dtype=float)
-    goals = np.atleast_2d(np.asarray(goals, dtype=float))
-    stack = EllipseStack.of(ellipses)
-    m = len(stack)
-    terminals = np.vstack([start, goals])
-    if m:
-        verts = _polygon_vertices(stack, sides=sides, level=level)
-        flat = verts.reshape(-1, 2)
-        k = np.arange(sides)
-        prev = verts[:, (k - 1) % sides, :].reshape(-1, 2)
-        nxt = verts[:, (k + 1) % sides, :].reshape(-1, 2)
-        owner = np.repeat(np.arange(m), sides)
-        index_in_polygon = np.tile(k, m)
-        keep = np.all((flat >= bounds_min) & (flat <= bounds_max), axis=1)
-        keep &= stack.min_levels(flat) >= 1.0
-        flat, prev, nxt, owner, index_in_polygon = (
-            a[keep] for a in (flat, prev, nxt, owner, index_in_polygon)
-        )
-    else:
-        flat = prev = nxt = np.zeros((0, 2))
-        owner = index_in_polygon = np.zeros(0, dtype=int)
-
-    t = len(terminals)
-    points = np.vstack([terminals, flat])
-    prev = np.vstack([terminals, prev])
-    nxt = np.vstack([terminals, nxt])
-    owner = np.concatenate([-1 - np.arange(t), owner])
-    on_polygon = owner >= 0
-    index_in_polygon = np.concatenate([np.full(t, -1), index_in_polygon])
-
-    i, j = _candidate_edges(points, prev, nxt, owner, on_polygon)
-    # Sides of one polygon join consecutive vertices (sides and 0 wrap round).
-    same = np.flatnonzero(
-        (owner[:-1] == owner[1:])
-        & on_polygon[:-1]
-        & ((index_in_polygon[1:] - index_in_polygon[:-1]) == 1)
+    route = shortest_route(
+        start=start, goals=goals, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max, level=level
     )
-    i = np.concatenate([i, same])
-    j = np.concatenate([j, same + 1])
-    for poly in np.unique(owner[on_polygon]):
-        idx = np.flatnonzero(owner == poly)
-        if index_in_polygon[idx[0]] == 0 and index_in_polygon[idx[-1]] == sides - 1:
-            i = np.append(i, idx[-1])
-            j = np.append(j, idx[0])
-
-    if m and len(i):
-        clear = np.ones(len(i), dtype=bool)
-        for lo in range(0, len(i), _EDGE_CHUNK):
-            sl = slice(lo, lo + _EDGE_CHUNK)
-            clear[sl] = stack.min_segment_levels(points[i[sl]], points[j[sl]]) >= 1.0
-        i, j = i[clear], j[clear]
-
-    lengths = np.linalg.norm(points[i] - points[j], axis=1)
-    graph = coo_matrix((lengths, (i, j)), shape=(len(points), len(points))).tocsr()
-    legs = []
-    for leg in range(len(goals)):
-        dist, pred = dijkstra(graph, directed=False, indices=leg, return_predecessors=True)
-        target = leg + 1
-        if not np.isfinite(dist[target]):
-            return None
-        chain = [target]
-        while chain[-1] != leg:
-            chain.append(pred[chain[-1]])
-        legs.append(points[chain[::-1]])
-    return legs
+    return None if route is None else route.legs

@@ -68,9 +68,11 @@ def _length(problem: BenchProblem, attempt: planners.Attempt) -> float:
 
 def test_optimum_matches_the_analytic_length(disc):
     problem, analytic_m = disc
-    length = _length(problem, planners.plan_optimum(problem, sides=256))
-    # Circumscribed 256-gons: never shorter, at most 1/cos(π/256) − 1 = 7.5e-5 longer along the arc.
-    assert analytic_m * (1 - 1e-9) <= length <= analytic_m * (1 + 7.6e-5)
+    attempt = planners.plan_optimum(problem)
+    # The exact tangent graph: tangent, arc, tangent, to rounding.
+    assert sum(attempt.extra.values()) == pytest.approx(analytic_m, rel=1e-9)
+    # The path drawn round the arc is circumscribed: never shorter, at most 1/cos(π/32) − 1 longer.
+    assert analytic_m * (1 - 1e-9) <= _length(problem, attempt) <= analytic_m / np.cos(np.pi / 32)
 
 
 def test_cvxnav_is_within_one_percent_of_the_analytic_length(disc):
@@ -149,7 +151,7 @@ def test_missing_peers_are_skipped_with_a_note_that_says_how_to_install(disc, mo
     why = {"ompl": "ompl not importable (ImportError); install the extra: pip install -e \".[bench]\"",
            "drake": "drake not importable (ImportError); install the extra: pip install -e \".[bench]\""}
     monkeypatch.setattr(runner.planners, "peer_status", lambda: why)
-    options = runner.BenchOptions(repeats=1, optimum_sides=64, fit_counts=(), scaling_counts=())
+    options = runner.BenchOptions(repeats=1, fit_counts=(), scaling_counts=())
     report = runner.run_bench(scenarios=[problem.scenario], options=options, command="test",
                               console=Console(file=None, quiet=True), show_progress=False)
     names = [p.planner for p in report.scenarios[0].planners]
