@@ -21,6 +21,9 @@ def add_bench_parser(commands: argparse._SubParsersAction) -> None:
     bench.add_argument("--repeats", type=int, default=None, help="timed repeats per planner (default 5, quick 2)")
     bench.add_argument("--budget-s", type=float, default=None,
                        help="per-leg budget of the sampling planners (default 5, quick 1)")
+    bench.add_argument("--closed-loop", action="store_true",
+                       help="instead: drive each scenario's closed loop with the stage cores in this process "
+                            "(outcome, length ÷ reference, per-stage latency)")
     bench.add_argument("--quiet", action="store_true", help="no progress bar")
     bench.set_defaults(handler=run_command)
 
@@ -63,6 +66,8 @@ def run_command(args: argparse.Namespace) -> int:
     if args.budget_s is not None:
         options = replace(options, sampling_budget_s=args.budget_s)
     scenarios = _scenarios(list(args.scenarios), quick=args.quick)
+    if args.closed_loop:
+        return _closed_loop(scenarios, args)
     console = Console() if sys.stdout.isatty() else Console(width=160)
     report = run_bench(scenarios=scenarios, options=options, command=command_line(),
                        console=Console(stderr=True), show_progress=not args.quiet)
@@ -73,4 +78,35 @@ def run_command(args: argparse.Namespace) -> int:
         args.markdown.write_text(to_markdown(report), encoding="utf-8")
     if args.schema is not None:
         args.schema.write_text(json.dumps(BenchReport.model_json_schema(), indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+def _closed_loop(scenarios: list, args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.markdown import Markdown
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from cvxnav.bench.closed_loop import ClosedLoopReport, closed_loop_markdown, run_closed_loop
+    from cvxnav.bench.problem import reference_lengths
+    from cvxnav.bench.runner import default_scenario_dir
+    from sim.service import default_time_limit_s
+
+    references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
+    rows = []
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("sim {task.completed:5.1f} s"),
+               TimeElapsedColumn())
+    with Progress(*columns, console=Console(stderr=True), disable=args.quiet) as bar:
+        for scenario in scenarios:
+            task = bar.add_task(scenario.name, total=default_time_limit_s(scenario))
+            rows.append(run_closed_loop(scenario, reference_m=references.get(scenario.name),
+                                        on_step=lambda sim_s, task=task: bar.update(task, completed=sim_s)))
+    report = ClosedLoopReport(rows=rows)
+    table = closed_loop_markdown(report)
+    Console(width=200).print(Markdown(table))
+    if args.json is not None:
+        args.json.write_text(report.model_dump_json(indent=1) + "\n", encoding="utf-8")
+    if args.markdown is not None:
+        args.markdown.write_text(table, encoding="utf-8")
+    if args.schema is not None:
+        args.schema.write_text(json.dumps(ClosedLoopReport.model_json_schema(), indent=1) + "\n", encoding="utf-8")
     return 0

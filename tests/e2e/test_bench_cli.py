@@ -46,3 +46,26 @@ def test_a_bad_scenario_is_one_line_and_exit_2(tmp_path: Path):
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and "bad.json" in done.stderr
+
+
+@pytest.mark.slow
+def test_closed_loop_bench_drives_a_scenario_to_its_goal_and_reports_it(tmp_path: Path, scenarios_dir: Path):
+    """`cvxnav bench --closed-loop`: the stage cores close the loop; the row is what the run would show."""
+    from cvxnav.bench.closed_loop import STAGE_ORDER, ClosedLoopReport
+    from schemas.scenario import load_scenario
+
+    out, markdown = tmp_path / "loop.json", tmp_path / "loop.md"
+    done = subprocess.run(
+        [sys.executable, "-m", "cvxnav", "bench", "--closed-loop", "--quiet", str(scenarios_dir / "field-8.json"),
+         "--json", str(out), "--markdown", str(markdown)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    (row,) = ClosedLoopReport.model_validate_json(out.read_text()).rows
+    scenario = load_scenario(scenarios_dir / "field-8.json")
+    assert row.status == "reached" and row.goals_reached == row.goals == len(scenario.goals)
+    assert row.min_clearance_m >= 0.5 * scenario.robot.safety_distance
+    assert row.reference_m is not None and 0.9 <= row.length_m / row.reference_m <= 1.3  # goal tolerance: may end short
+    assert set(row.latency) == {*STAGE_ORDER, "total"}
+    assert row.latency["total"].p50_ms <= row.latency["total"].p99_ms <= row.latency["total"].max_ms
+    assert "| field-8 | reached | 1/1 |" in markdown.read_text()
