@@ -93,7 +93,10 @@ class EllipsoidsStage:
                 raw.append(piece)
                 grown.append(piece_grown)
                 cluster_ids.append(cluster_id)
-        labels = group_ellipses(raw, min_gap_m=self.config.min_gap_m)
+        # A cluster is one obstacle, so its pieces share a group from the start (the default sensing
+        # links points closer than r, so adjacent pieces are closer than the passage 2 r anyway); only
+        # pairs across clusters are examined.
+        labels = group_ellipses(raw, min_gap_m=self.config.min_gap_m, connected=np.array(cluster_ids, dtype=int))
         out = Ellipsoids(
             header=answer_header(scan_header=message.header, seq=self._seq),
             scan_seq=message.scan_seq,
