@@ -192,20 +192,26 @@ def plan_until_verified(
     timer: Callable[[str], AbstractContextManager] = lambda stage: nullcontext(),
     **problem,
 ) -> tuple[PathPlan, Smoothed | None]:
-    """`plan_path`, re-optimised with wider margins (level, curvature factor) while the smoothed curve
-    fails verification; the plan and the last smoothed curve (None when there is no path).
+    """`plan_path`, re-optimised with the `repairs`' margins (level, curvature factor) in turn until the
+    smoothed curve verifies; the plan and its smoothed curve.
 
+    Without a verified curve: the last plan whose curve failed, with that curve; else (every attempt
+    found no route) the first attempt's no_path, with None. An attempt's no_path does not end the
+    search: a repair with a narrower margin may open a passage the wider ones closed.
     `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
     """
     attempts = [settings] + [replace(settings, level=level, curvature_factor=factor) for level, factor in repairs]
-    smoothed: Smoothed | None = None
+    fallback: tuple[PathPlan, Smoothed | None] | None = None
     for attempt in attempts:
         with timer("optimize"):
             plan = plan_path(**problem, settings=attempt)
         if plan.status != "ok":
-            return plan, None
+            fallback = fallback or (plan, None)
+            continue
         with timer("smooth"):
             smoothed = smooth_fn(plan.points)
         if smoothed.verification.ok:
-            break
-    return plan, smoothed
+            return plan, smoothed
+        fallback = (plan, smoothed)
+    assert fallback is not None  # attempts is never empty
+    return fallback

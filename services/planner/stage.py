@@ -62,7 +62,9 @@ class PlannerConfig:
     # car can no longer steer away. Online, plans keep a wider margin; and they bend to 0.9 of the
     # curvature bound, so the tracker has steering in reserve to correct an error on the tightest arc.
     refine: RefineSettings = field(default_factory=lambda: RefineSettings(level=1.1, curvature_factor=0.9))
-    repairs: tuple[tuple[float, float], ...] = ((1.15, 0.8), (1.2, 0.65))  # (level, curvature_factor)
+    # (level, curvature_factor): wider margins first, for a smoothed curve that clips an ellipse; last
+    # the known-map margin, for a car boxed in near obstacles that the wide margin leaves no turn from.
+    repairs: tuple[tuple[float, float], ...] = ((1.15, 0.8), (1.2, 0.65), (1.02, 0.97))
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
 
     @classmethod
