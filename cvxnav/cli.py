@@ -182,7 +182,12 @@ def _cmd_status(args: argparse.Namespace) -> int:
     from schemas.wiring import default_prefix
 
     prefix = args.prefix or default_prefix(robot_id=args.robot_id)
-    with zenoh.open(zenoh_config_from_args(args)) as session:
+    try:
+        session = zenoh.open(zenoh_config_from_args(args))
+    except zenoh.ZError as error:  # e.g. nothing listens at --connect, or a TLS port without --config
+        reason = str(error).split("  at ")[0]
+        raise CliError(f"cannot open a Zenoh session: {reason}") from None
+    with session:
         report = observe(session, prefix=prefix, window_s=args.window_s)
     print(report.to_json() if args.json else report.table())
     return EXIT_OK

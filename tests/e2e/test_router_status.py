@@ -72,3 +72,11 @@ def test_run_through_the_router_with_status(tmp_path):
     finally:
         stop_processes(processes, grace_s=10.0)
     assert processes[0].returncode == 0  # the router stops cleanly on SIGTERM
+
+
+def test_status_without_a_reachable_peer_says_so_in_one_line():
+    (port,) = free_ports(1)  # nothing listens there
+    done = subprocess.run([sys.executable, "-m", "cvxnav", "status", "--connect", f"tcp/127.0.0.1:{port}",
+                           "--mode", "client"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.startswith("cvxnav: error: cannot open a Zenoh session:") and done.stderr.count("\n") == 1
