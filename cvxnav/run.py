@@ -37,6 +37,9 @@ A stage is swapped by naming, in a JSON `stages` file, either a Python entry poi
 
 The supervisor's own session is a peer of every stage (under TLS, their router).
 `--record-messages FILE` has that session record every message under the prefix (`cvxnav.record`).
+
+The run's directory of stage logs, Zenoh configs and checkpoints is removed when every goal is
+reached; otherwise it is kept and its path logged.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import shutil
 import signal
 import socket
 import subprocess
@@ -511,6 +515,10 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
         result = RunFile.read(options.out_path)
     except OutputFileError as error:
         raise PipelineError(f"the sim wrote no usable run file: {error}") from None
+    if result.status == "reached":  # nothing to look into: the stage logs, configs and checkpoints go
+        shutil.rmtree(supervisor.log_dir, ignore_errors=True)
+    else:
+        logger.warning("stage logs kept in %s", supervisor.log_dir)
     return EXIT_BY_STATUS[result.status], result, restarts
 
 
