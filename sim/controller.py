@@ -48,25 +48,11 @@ class Command:
     cross_track_m: float = 0.0  # distance from the footprint centre to the path
 
 
-def menger_curvature(points: ArrayLike) -> FloatArray:
-    """Unsigned curvature at each vertex from the circle through it and its two neighbours (0 at the ends)."""
-    z = np.asarray(points, dtype=float)
-    kappa = np.zeros(len(z))
-    if len(z) < 3:
-        return kappa
-    a, b, c = z[:-2], z[1:-1], z[2:]
-    ab, bc, ac = b - a, c - b, c - a
-    cross = np.abs(ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0])
-    lengths = np.linalg.norm(ab, axis=1) * np.linalg.norm(bc, axis=1) * np.linalg.norm(ac, axis=1)
-    kappa[1:-1] = np.where(lengths > 0.0, 2.0 * cross / np.where(lengths > 0.0, lengths, 1.0), 0.0)
-    return kappa
-
-
 def signed_curvature(points: ArrayLike, *, stride: int = 1) -> FloatArray:
     """Curvature of the circle through each vertex and the vertices `stride` before and after it.
 
     Signed: positive where the path turns left. A stride longer than one averages the curvature over
-    the arc between the three points; the first and last `stride` vertices take their nearest value.
+    the arc between the three points. The first and last `stride` vertices have no such circle: 0.
     """
     z = np.asarray(points, dtype=float)
     kappa = np.zeros(len(z))
@@ -78,8 +64,12 @@ def signed_curvature(points: ArrayLike, *, stride: int = 1) -> FloatArray:
     cross = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]
     lengths = np.linalg.norm(ab, axis=1) * np.linalg.norm(bc, axis=1) * np.linalg.norm(ac, axis=1)
     kappa[h:-h] = np.where(lengths > 0.0, 2.0 * cross / np.where(lengths > 0.0, lengths, 1.0), 0.0)
-    kappa[:h], kappa[-h:] = kappa[h], kappa[-h - 1]
     return kappa
+
+
+def menger_curvature(points: ArrayLike) -> FloatArray:
+    """Unsigned curvature at each vertex from the circle through it and its two neighbours (0 at the ends)."""
+    return np.abs(signed_curvature(points))
 
 
 def steering_for_curvature(kappa: ArrayLike, *, wheelbase_m: float) -> FloatArray:
@@ -170,6 +160,8 @@ class PurePursuit:
         spacing = float(np.median(seg_len)) if len(seg_len) else 0.0
         stride = max(1, round(0.1 / spacing)) if spacing > 0.0 else 1  # curvature over ±0.1 m of path
         kappa = signed_curvature(z, stride=stride)
+        if len(kappa) > 2 * stride:  # the end vertices have no circle: carry their neighbours' curvature
+            kappa[:stride], kappa[-stride:] = kappa[stride], kappa[-stride - 1]
         steering = steering_for_curvature(kappa, wheelbase_m=self.wheelbase_m)
         v_limit = np.sqrt(self.max_lateral_accel_mps2 / np.maximum(np.abs(kappa), 1e-12))
         v_limit = np.minimum(v_limit, self._steering_rate_limit(steering, spacing_m=spacing))
