@@ -33,7 +33,7 @@ from typing import Protocol
 import zenoh
 from pydantic import BaseModel
 
-from schemas.messages import DecodeError, Header, StageStatus, decode
+from schemas.messages import DecodeError, Header, M, StageStatus, decode
 from schemas.wiring import STAGES, StageSpec, alive_key, key, model_for, status_key
 
 logger = logging.getLogger(__name__)
@@ -70,6 +70,14 @@ class TickingCore(StageCore, Protocol):
     def tick(self, *, now_s: float) -> Outputs:
         """Advance by one period; return the messages to publish, by topic name."""
         ...
+
+
+def decode_sample(model: type[M], sample: zenoh.Sample, *, max_payload_bytes: int) -> M:
+    """One received sample as `model`; a payload over `max_payload_bytes` is refused before decoding."""
+    size = len(sample.payload)
+    if size > max_payload_bytes:
+        raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={max_payload_bytes}")
+    return decode(model, sample.payload.to_bytes(), encoding=str(sample.encoding))
 
 
 def install_signal_handlers(stop_event: threading.Event) -> None:
@@ -153,10 +161,7 @@ class _Shell:
             self._report(input_key=input_key, started=started, reason=None)
 
     def _decoded(self, *, topic: str, sample: zenoh.Sample) -> BaseModel:
-        size = len(sample.payload)
-        if size > self._max_payload_bytes:
-            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self._max_payload_bytes}")
-        return decode(model_for(topic), sample.payload.to_bytes(), encoding=str(sample.encoding))
+        return decode_sample(model_for(topic), sample, max_payload_bytes=self._max_payload_bytes)
 
     def _process(self, *, topic: str, message: BaseModel) -> Outputs:
         header = getattr(message, "header", None)

@@ -43,12 +43,13 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageInputError, one_line
+from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageInputError, decode_sample, one_line
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import (
     DecodeError,
     Ellipsoids,
     Header,
+    M,
     Pose2D,
     RobotState,
     Scan,
@@ -330,7 +331,7 @@ class _Answers:
         newest = None
         while (sample := self.paths.try_recv()) is not None:
             try:
-                answer = self._decoded(sample)
+                answer = self._answer(SmoothPath, sample)
             except DecodeError as error:
                 self._report(str(sample.key_expr), one_line(f"{sample.key_expr}: {error}"))
                 continue
@@ -341,11 +342,9 @@ class _Answers:
                 newest = answer
         return newest
 
-    def _decoded(self, sample: zenoh.Sample) -> SmoothPath:
-        size = len(sample.payload)
-        if size > self.max_payload_bytes:
-            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self.max_payload_bytes}")
-        answer = decode(SmoothPath, sample.payload.to_bytes(), encoding=str(sample.encoding))
+    def _answer(self, model: type[M], sample: zenoh.Sample) -> M:
+        """A received SmoothPath or Ellipsoids, bounded in size and answering a scan the sim sent."""
+        answer = decode_sample(model, sample, max_payload_bytes=self.max_payload_bytes)
         if answer.scan_seq not in self.stamps:
             raise DecodeError(f"answers scan {answer.scan_seq}, which the sim never sent")
         return answer
@@ -401,12 +400,7 @@ class _Answers:
         The guard keeps the newest set by scan; a forged one numbered past every real scan would
         otherwise blind it to the real obstacles for the rest of the run.
         """
-        size = len(sample.payload)
-        if size > self.max_payload_bytes:
-            raise DecodeError(f"payload of {size} bytes exceeds max_payload_bytes={self.max_payload_bytes}")
-        message = decode(Ellipsoids, sample.payload.to_bytes(), encoding=str(sample.encoding))
-        if message.scan_seq not in self.stamps:
-            raise DecodeError(f"answers scan {message.scan_seq}, which the sim never sent")
+        message = self._answer(Ellipsoids, sample)
         self.reach.check_ellipses(message.ellipsoids, what="ellipsoids")
         return message
 
