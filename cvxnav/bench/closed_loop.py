@@ -19,16 +19,13 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.runtime import StageCore, StageInputError
+from cvxnav.run import DEFAULT_FACTORIES, PIPELINE, load_factory
+from cvxnav.runtime import StageInputError
 from schemas.messages import Ellipsoids, SmoothPath
 from schemas.scenario import Scenario
-from services.ellipsoids.stage import EllipsoidsStage
-from services.planner.stage import PlannerStage
-from services.sensing.stage import SensingStage
-from services.smoother.stage import SmootherStage
 from sim.service import SimCore
 
-STAGE_ORDER = ("sensing", "ellipsoids", "planner", "smoother")
+STAGE_ORDER = PIPELINE  # sensing -> ellipsoids -> planner -> smoother
 
 
 class StageLatency(BaseModel):
@@ -71,12 +68,7 @@ def run_closed_loop(scenario: Scenario, *, reference_m: float | None = None,
                     on_step: Callable[[float], None] | None = None) -> ClosedLoopRow:
     """Drive `scenario` to its outcome with the default stage cores; `on_step(sim_s)` after each scan."""
     core = SimCore(scenario)
-    stages: dict[str, StageCore] = {
-        "sensing": SensingStage.from_scenario(scenario),
-        "ellipsoids": EllipsoidsStage.from_scenario(scenario),
-        "planner": PlannerStage.from_scenario(scenario),
-        "smoother": SmootherStage.from_scenario(scenario),
-    }
+    stages = {name: load_factory(DEFAULT_FACTORIES[name])(scenario) for name in STAGE_ORDER}
     samples: dict[str, list[float]] = {name: [] for name in (*STAGE_ORDER, "total")}
     started = time.perf_counter()
     while core.outcome is None:
