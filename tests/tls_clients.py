@@ -51,3 +51,23 @@ def outsider_configs(ours: Path, theirs: Path, endpoint: str) -> dict[str, dict]
         connect_certificate=str(theirs / "sensing.pem"), connect_private_key=str(theirs / "sensing.key"))
     return {"no certificate": no_cert, "another CA": other_ca,
             "valid certificate, name not allowed": client_config(cert_dir=ours, name=INTRUDER, connect=[endpoint])}
+
+
+def connect_outsiders(ours: Path, theirs: Path, endpoint: str, *, prefix: str,
+                      liveliness: bool = False) -> dict[str, tuple[zenoh.Session | None, Inbox]]:
+    """Each outsider of ``outsider_configs`` connected and subscribed to everything under ``prefix``
+    (and to its liveliness tokens, if asked), with the inbox it fills; None where the handshake
+    refuses it. The caller closes the sessions."""
+    outsiders: dict[str, tuple[zenoh.Session | None, Inbox]] = {}
+    for label, config in outsider_configs(ours, theirs, endpoint).items():
+        inbox = Inbox()
+        try:
+            session = open_session(config)
+        except zenoh.ZError:
+            session = None  # refused at the handshake: nothing can pass
+        else:
+            session.declare_subscriber(f"{prefix}/**", inbox)
+            if liveliness:
+                session.liveliness().declare_subscriber(f"{prefix}/alive/*", inbox)
+        outsiders[label] = (session, inbox)
+    return outsiders

@@ -21,7 +21,7 @@ from cvxnav.run import free_ports, stop_processes
 from schemas.files import RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, decode
 from schemas.wiring import default_prefix, key
-from tls_clients import INTRUDER, Inbox, open_session, outsider_configs
+from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 pytestmark = pytest.mark.slow
 PREFIX = default_prefix()
@@ -63,18 +63,8 @@ def test_tls_run_reaches_its_goals_and_outsiders_get_nothing(tmp_path):
         sessions.append(operator)
         heard = Inbox()
         operator.declare_subscriber(f"{PREFIX}/**", heard)
-        outsiders: dict[str, tuple[zenoh.Session | None, Inbox]] = {}
-        for label, config in outsider_configs(ours, theirs, endpoint).items():
-            inbox = Inbox()
-            try:
-                session = open_session(config)
-            except zenoh.ZError:
-                session = None  # refused at the handshake
-            else:
-                sessions.append(session)
-                session.declare_subscriber(f"{PREFIX}/**", inbox)
-                session.liveliness().declare_subscriber(f"{PREFIX}/alive/*", inbox)
-            outsiders[label] = (session, inbox)
+        outsiders = connect_outsiders(ours, theirs, endpoint, prefix=PREFIX, liveliness=True)
+        sessions += [session for session, _ in outsiders.values() if session is not None]
         assert outsiders["valid certificate, name not allowed"][0] is not None, "a signed client gets a link"
         replies = {label: 0 for label in outsiders}
         forged = 0

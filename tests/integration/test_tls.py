@@ -21,7 +21,7 @@ from cvxnav.certs import client_config, pipeline_names, router_config, write_dep
 from cvxnav.run import free_ports
 from schemas.messages import Clusters, Header, Pose2D, Scan, decode
 from schemas.wiring import default_prefix, key
-from tls_clients import INTRUDER, Inbox, open_session, outsider_configs
+from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0
@@ -58,16 +58,7 @@ def test_only_pipeline_certificates_exchange_messages(deployment, tmp_path):
     with open_session(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
             open_session(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
         monitor.declare_subscriber(f"{PREFIX}/**", monitor_inbox)
-        outsiders: dict[str, tuple[zenoh.Session | None, Inbox]] = {}
-        for label, config in outsider_configs(ours, theirs, endpoint).items():
-            inbox = Inbox()
-            try:
-                session = open_session(config)
-            except zenoh.ZError:
-                session = None  # refused at the handshake: nothing can pass
-            else:
-                session.declare_subscriber(f"{PREFIX}/**", inbox)
-            outsiders[label] = (session, inbox)
+        outsiders = connect_outsiders(ours, theirs, endpoint, prefix=PREFIX)
         time.sleep(SETTLE_S)
         assert outsiders["valid certificate, name not allowed"][0] is not None, "a signed client gets a link"
         sim.put(key(PREFIX, "scan"), _scan(1))
