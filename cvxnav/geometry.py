@@ -155,6 +155,11 @@ class EllipseStack:
         return 1.0 / np.linalg.eigvalsh(self.A)[:, 0] if len(self) else np.zeros(0)
 
     @cached_property
+    def semi_axes(self) -> FloatArray:
+        """(m, 2) semi-axes of each ellipse, largest first."""
+        return 1.0 / np.linalg.eigvalsh(self.A) if len(self) else np.zeros((0, 2))
+
+    @cached_property
     def stretch(self) -> FloatArray:
         """‖Aⱼ‖₂: how much a displacement grows in each ellipse's unit-disc frame."""
         return np.linalg.eigvalsh(self.A)[:, 1] if len(self) else np.zeros(0)
@@ -233,6 +238,28 @@ class EllipseStack:
         sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
         rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag)
         return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
+
+
+def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) -> FloatArray:
+    """For ellipses grown by `inflation_m` from their fits: the least scale s ≤ 1 about its centre at which
+    each still provably contains its fit grown by `keep_m` (so a path outside the scaled ellipse keeps
+    `keep_m` from the fit).
+
+    Growth (`Ellipse.grown`) gives each semi-axis aᵢ² = (1 + 1/p) fᵢ² + (1 + p) r² ≥ (fᵢ + r)², since the
+    difference is (fᵢ/√p − √p r)²; so the fit's semi-axes are fᵢ ≤ aᵢ − r, along the same axes. For any
+    q > 0 the coaxial ellipse hᵢ² = (1 + 1/q)(aᵢ − r)² + (1 + q) k² contains the fit plus a disc of
+    radius k (Kurzhanski–Vályi, as in `grown`); of q = f₁/k, √(f₁f₂)/k (exact for a disc) and f₂/k the
+    one that needs the least scale is taken. The grown ellipse scaled by s = maxᵢ hᵢ/aᵢ contains it.
+    `semi_axes` is (m, 2); k = 0 gives the fit's own bound, s = maxᵢ (aᵢ − r)/aᵢ.
+    """
+    a = np.atleast_2d(np.asarray(semi_axes, dtype=float))
+    f = np.maximum(a - inflation_m, 0.0)
+    if keep_m <= 1e-9:  # nothing to keep beyond the fit itself
+        return np.minimum(np.max(f / a, axis=1), 1.0)
+    candidates = np.column_stack([f[:, 0], np.sqrt(f[:, 0] * f[:, 1]), f[:, 1]]) / keep_m
+    q = np.clip(candidates, 1e-9, 1e12)[:, :, None]  # (m, 3 choices, 1)
+    h = np.sqrt((1.0 + 1.0 / q) * f[:, None, :] ** 2 + (1.0 + q) * keep_m**2)
+    return np.minimum(np.min(np.max(h / a[:, None, :], axis=2), axis=1), 1.0)
 
 
 def polyline_length(points: ArrayLike) -> float:

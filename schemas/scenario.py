@@ -367,6 +367,14 @@ class Scenario(_Frozen):
         return self.robot.width / 2.0 + self.robot.safety_distance
 
     @property
+    def keep_out_m(self) -> float:
+        """Distance from a true obstacle that the footprint centre never goes below: half the footprint's
+        diagonal plus half the safety distance, so the footprint, in any heading, stays at least half the
+        safety distance clear (the run's hard floor; plans keep the full `inflation_m` wherever they can).
+        """
+        return math.hypot(self.robot.length, self.robot.width) / 2.0 + self.robot.safety_distance / 2.0
+
+    @property
     def max_curvature(self) -> float:
         """Kinematic bicycle bound κ = tan(δ_max) / L (minimum turn radius L / tan δ_max)."""
         return math.tan(self.robot.max_steering_angle) / self.robot.wheelbase

@@ -6,14 +6,17 @@ checks each path it receives, and the path it is driving whenever newer ellipses
 segment with the paper's eq. (2) on the continuous segment (`EllipseStack.segment_pairs`). A path that
 enters one is not driven: the car brakes, and the reason names the ellipse and where.
 
-The robot may already be inside a grown ellipse (a fit sticks out of a newly seen obstacle, or the car
-is closer than the full margin to it). The planner then shrinks that ellipse about its centre just
-enough to leave the start at level 1.02 (`services.planner.stage.free_start`), so its path may run
-through the outer part of the grown ellipse, never deeper than level(start) / 1.02. The guard allows,
-for each ellipse, a level down to min(1, level(start) / (1 + START_SLACK)); with START_SLACK above the
-planner's 0.02 this never rejects a path the planner verified, and still rejects one that goes deeper
-towards an obstacle than the robot already is, or enters an ellipse the robot is outside of.
-LEVEL_TOL absorbs the chords between the smoothed curve's samples (0.05 m apart: they stray from the
+What the guard holds the path to is the run's hard floor, not the planner's margins: a grown ellipse
+scaled about its centre by `keep_out_scales` still contains its fit grown by `Scenario.keep_out_m`
+(half the footprint's diagonal plus half the safety distance), so a path outside it keeps the footprint
+half the safety distance clear of the fit in any heading. The planner keeps the full margin wherever
+it can and gives it up down to that floor only near a car that newly grown covers have boxed in
+(`services.planner.stage.relieved_scales`). The robot may even be deeper than that floor already (a fit
+sticks out of a newly seen obstacle): the planner shrinks any ellipse the start is inside just enough to
+leave it at level 1.02 (`free_start_scales`), so its path may run no deeper than level(start) / 1.02,
+and the guard allows down to level(start) / (1 + START_SLACK) where that is deeper than the floor;
+with START_SLACK above the planner's 0.02 it never rejects a path the planner verified, and still
+rejects one that goes deeper towards an obstacle than the robot already is. LEVEL_TOL absorbs the chords between the smoothed curve's samples (0.05 m apart: they stray from the
 curve by κ s² / 8 ≈ 1e-4 m, below 2e-4 in level for the paper's car).
 """
 
@@ -22,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cvxnav.geometry import EllipseStack, FloatArray
+from cvxnav.geometry import EllipseStack, FloatArray, keep_out_scales
 from schemas.messages import Ellipsoids
 
 START_SLACK = 0.03
@@ -46,8 +49,11 @@ def ahead(points: ArrayLike, *, position: ArrayLike) -> FloatArray:
 class PathGuard:
     """The newest grown ellipses the sim has seen, and the check of a path against them."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, inflation_m: float, keep_out_m: float) -> None:
+        self.inflation_m = inflation_m  # the scenario's: how much the ellipses were grown from their fits
+        self.keep_out_m = keep_out_m
         self.stack = EllipseStack.of([])
+        self.hard = np.ones(0)  # per ellipse, the scale of its hard floor (level ≥ this)
         self.cluster_ids: list[int] = []
         self.scan_seq = -1  # the scan the known ellipses answer; -1: none yet
 
@@ -62,13 +68,14 @@ class PathGuard:
         else:
             self.stack = EllipseStack.of([])
         self.cluster_ids = [e.cluster_id for e in message.ellipsoids]
+        self.hard = keep_out_scales(self.stack.semi_axes, inflation_m=self.inflation_m, keep_m=self.keep_out_m)
 
     def check(self, points: ArrayLike, *, start: ArrayLike) -> str | None:
         """Why the polyline `points`, driven from `start`, is not clear of the known ellipses; None if it is."""
         z = np.asarray(points, dtype=float).reshape(-1, 2)
         if len(self.stack) == 0 or len(z) < 2:
             return None
-        floor = np.minimum(1.0, self.stack.levels(start)[0] / (1.0 + START_SLACK)) - LEVEL_TOL
+        floor = np.minimum(self.hard, self.stack.levels(start)[0] / (1.0 + START_SLACK)) - LEVEL_TOL
         rows, cols, levels = self.stack.segment_pairs(z[:-1], z[1:])
         depth = levels - floor[cols]
         if depth.size == 0 or depth.min() >= 0.0:

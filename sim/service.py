@@ -124,7 +124,7 @@ class SimCore:
         self.no_path_since_s: float | None = None
         self.no_path_reason = ""
         self.plan_ids: list[int] = []
-        self.guard = PathGuard()
+        self.guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
         self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
         self.resume_seq = 0  # answers to earlier scans are not driven on: they predate a stage's loss
         self.scan_xy: dict[int, tuple[float, float]] = {}  # recent scans' positions, by seq

@@ -1,4 +1,5 @@
-"""Growth of an ellipse by a disc: it must contain the Minkowski sum, thin ellipses included."""
+"""Growth of an ellipse by a disc: it must contain the Minkowski sum, thin ellipses included; and a grown
+ellipse shrunk to its keep-out scale must still contain its fit grown by the keep-out distance."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cvxnav.geometry import Ellipse
+from cvxnav.geometry import Ellipse, keep_out_scales
 
 
 @settings(max_examples=80, deadline=None)
@@ -38,3 +39,28 @@ def test_growing_a_disc_adds_the_margin_to_its_radius():
     grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
     assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
     assert grown.center == pytest.approx([3.0, 4.0])
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    axes=st.tuples(st.floats(0.001, 4.0), st.floats(0.001, 4.0)),
+    angle=st.floats(0.0, np.pi),
+    inflation=st.floats(0.05, 2.0),
+    keep_fraction=st.floats(0.0, 1.0),
+)
+def test_the_keep_out_scale_keeps_the_fit_plus_the_keep_out_disc_inside(axes, angle, inflation, keep_fraction):
+    fit = Ellipse.from_axes(center=[1.0, -2.0], semi_axes=axes, angle_rad=angle)
+    grown = fit.grown(inflation)
+    keep = keep_fraction * inflation
+    scale = keep_out_scales(grown.semi_axes[None, :], inflation_m=inflation, keep_m=keep)[0]
+    assert 0.0 < scale <= 1.0
+    boundary = fit.boundary(720)
+    directions = np.linspace(0.0, 2.0 * np.pi, 72, endpoint=False)
+    disc = keep * np.column_stack([np.cos(directions), np.sin(directions)])
+    minkowski = (boundary[:, None, :] + disc[None, :, :]).reshape(-1, 2)
+    assert grown.level(minkowski).max() <= scale * (1.0 + 1e-9)  # inside the grown ellipse scaled by `scale`
+
+
+def test_the_keep_out_scale_gives_a_disc_exactly_the_keep_out_radius():
+    grown = Ellipse.circle(center=[0.0, 0.0], radius=1.0).grown(0.65)
+    assert keep_out_scales(grown.semi_axes[None, :], inflation_m=0.65, keep_m=0.585)[0] == pytest.approx(1.585 / 1.65)

@@ -128,7 +128,7 @@ def test_newer_obstacles_across_the_path_being_driven_stop_the_car():
 
 
 def test_the_guard_lets_a_robot_inside_a_grown_ellipse_leave_it_but_not_go_deeper():
-    guard = PathGuard()
+    guard = PathGuard(inflation_m=PAPER.inflation_m, keep_out_m=PAPER.keep_out_m)
     guard.know(grown(center=(0.0, 0.0), radius=2.0))
     start = (1.8, 0.0)  # level 0.9: closer to the obstacle than the full margin
     assert guard.check([start, (4.0, 0.0)], start=start) is None
