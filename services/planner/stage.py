@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
-from cvxnav.geometry import Ellipse, FloatArray
+from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales
 from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
 from schemas.scenario import Scenario
@@ -56,6 +56,7 @@ class PlannerConfig:
     bounds_max: FloatArray
     max_curvature: float  # the footprint centre's (Scenario.centre_max_curvature): the sim drives the centre
     inflation_m: float
+    keep_out_m: float  # the hard floor (Scenario.keep_out_m): relieved plans keep this from the fits
     reach: Reach
     # A sensed obstacle's cover grows as more of its surface comes into view, so a plan that hugged
     # the old cover at the known-map margin (level 1.02) soon lies inside the new one, often where the
@@ -76,6 +77,7 @@ class PlannerConfig:
             bounds_max=np.array(scenario.bounds.max, dtype=float),
             max_curvature=scenario.centre_max_curvature,
             inflation_m=scenario.inflation_m,
+            keep_out_m=scenario.keep_out_m,
             reach=Reach.of(scenario),
         )
 
@@ -98,26 +100,47 @@ def trim_to_robot(points: FloatArray, *, position: FloatArray) -> tuple[FloatArr
     return points[k:], float(dist[k])
 
 
-def free_start(ellipses: list[Ellipse], *, start: FloatArray, inflation_m: float) -> list[Ellipse]:
-    """Shrink any grown ellipse that swallows the robot, about its centre, just enough to leave it outside.
+def free_start_scales(stack: EllipseStack, *, start: FloatArray, inflation_m: float) -> FloatArray:
+    """Per ellipse, the scale about its centre that frees the robot from a grown ellipse it is inside (1: none).
 
     A fit may stick out of a newly seen obstacle by up to its tolerance, and the robot may already be
     closer than the full inflation to it; planning from inside an ellipse is impossible. Scaling the
     ellipse by s about its centre divides every level by s, so s = level(start) / 1.02 puts the start at
-    level 1.02. Growth lengthens each semi-axis aᵢ by at least the inflation r, so an ellipse scaled by
-    s ≥ maxᵢ (aᵢ − r) / aᵢ still contains the un-grown fit: the robot keeps a reduced margin but never
-    plans into the obstacle itself. An ellipse that would need more shrinking is left alone (no path).
+    level 1.02. An ellipse scaled by no less than `keep_out_scales(..., keep_m=0)` still contains the
+    un-grown fit: the robot keeps a reduced margin but never plans into the obstacle itself. An ellipse
+    that would need more shrinking is left alone (no path).
     """
+    if len(stack) == 0:
+        return np.ones(0)
+    level = stack.levels(start)[0]
+    floor = keep_out_scales(stack.semi_axes, inflation_m=inflation_m, keep_m=0.0)
+    scale = level / (1.0 + _START_LEVEL_MARGIN)
+    return np.where((level < 1.0 + _START_LEVEL_MARGIN) & (scale >= floor) & (scale > 0.0), scale, 1.0)
+
+
+def relieved_scales(
+    stack: EllipseStack, *, start: FloatArray, within_m: float, inflation_m: float, keep_out_m: float
+) -> FloatArray:
+    """Per ellipse, the scale that trades its margin down to the run's hard floor, for those within
+    `within_m` of the start (1 for the rest).
+
+    A car that new covers have boxed in — an obstacle's cover grew as more of it came into view, and
+    the car, close to it already, cannot turn inside the full margin — may still turn out safely inside
+    part of it. Near the start only, an ellipse shrinks to the least scale that still keeps `keep_out_m`
+    from its fit (`keep_out_scales`): the footprint stays half the safety distance clear.
+    """
+    if len(stack) == 0:
+        return np.ones(0)
+    near = np.linalg.norm(stack.centers - start, axis=1) - stack.reach < within_m
+    keep = keep_out_scales(stack.semi_axes, inflation_m=inflation_m, keep_m=keep_out_m)
+    return np.where(near, keep, 1.0)
+
+
+def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
+    """Each ellipse scaled about its centre by its factor (level ÷ scale)."""
     out = []
-    for ellipse in ellipses:
-        level = float(ellipse.level(start)[0])
-        if level >= 1.0 + _START_LEVEL_MARGIN:
-            out.append(ellipse)
-            continue
-        axes = ellipse.semi_axes
-        floor = float(np.max(np.clip(axes - inflation_m, 0.0, None) / axes))
-        scale = level / (1.0 + _START_LEVEL_MARGIN)
-        if scale < floor or scale <= 0.0:
+    for ellipse, scale in zip(ellipses, scales):
+        if scale >= 1.0:
             out.append(ellipse)
             continue
         A = ellipse.A / scale
@@ -132,6 +155,7 @@ class PlannerStage:
         self.pending: Ellipsoids | None = None  # ellipsoids waiting for the state of their scan
         self.plan: FloatArray | None = None  # the current plan (points), None when there is none
         self.plan_goal_base = 0  # goals reached when the current plan was made
+        self.plan_relieved = False  # the current plan was made with the margin near the robot relieved
         self.plan_id = 0
         self._seq = 0
         self._checkpoint: Path | None = None
@@ -195,31 +219,54 @@ class PlannerStage:
         goal_base = state.goals_reached
         if goal_base >= len(self.config.goals):
             raise StageInputError("every goal is already reached")
+        config = self.config
         position = np.array([state.pose.x_m, state.pose.y_m])
-        # Plan, check and publish against the same ellipses: the smoother verifies against these.
-        ellipses = free_start(ellipses_from_msgs(message.ellipsoids), start=position,
-                              inflation_m=self.config.inflation_m)
-        wire = [
-            ellipse_to_msg(ellipse, group=msg.group, cluster_id=msg.cluster_id)
-            for ellipse, msg in zip(ellipses, message.ellipsoids)
-        ]
+        goals = config.goals[goal_base:]
+        sensed = ellipses_from_msgs(message.ellipsoids)
+        stack = EllipseStack.of(sensed)
+        free = free_start_scales(stack, start=position, inflation_m=config.inflation_m)
+        ellipses = scaled(sensed, free)
 
+        def relieved() -> FloatArray:
+            near = relieved_scales(stack, start=position, within_m=1.0 / config.max_curvature,
+                                   inflation_m=config.inflation_m, keep_out_m=config.keep_out_m)
+            return np.minimum(free, near)
+
+        # Plan, check and publish against the same ellipses: the smoother verifies against these.
+        used = ellipses
         points: FloatArray | None = None
         if self.plan is not None and self.plan_goal_base == goal_base:
-            points = self._still_valid(position=position, goals=self.config.goals[goal_base:], ellipses=ellipses)
+            used = scaled(sensed, relieved()) if self.plan_relieved else ellipses
+            points = self._still_valid(position=position, goals=goals, ellipses=used)
         status, reason = "ok", ""
         if points is None:
-            plan = self._replan(position=position, heading_rad=state.pose.theta_rad,
-                                goals=self.config.goals[goal_base:], ellipses=ellipses)
+            used = ellipses
+            plan, verified = self._replan(position=position, heading_rad=state.pose.theta_rad,
+                                          goals=goals, ellipses=ellipses)
+            relief = False
+            if not verified:
+                scales = relieved()
+                if np.any(scales < free):
+                    candidate = scaled(sensed, scales)
+                    retry, relief = self._replan(position=position, heading_rad=state.pose.theta_rad,
+                                                 goals=goals, ellipses=candidate)
+                    if relief:
+                        plan, used = retry, candidate
+                        logger.info("boxed in at (%.2f, %.2f): planned with the margin near the robot "
+                                    "relieved to the hard floor", *position)
             self.plan_id += 1
             if plan.status == "ok":
-                self.plan, self.plan_goal_base = plan.points, goal_base
+                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relief
                 points = plan.points
             else:
                 logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
                 self.plan = None
                 status, reason, points = "no_path", plan.reason, np.zeros((0, 2))
             self._save()
+        wire = [
+            ellipse_to_msg(ellipse, group=msg.group, cluster_id=msg.cluster_id)
+            for ellipse, msg in zip(used, message.ellipsoids)
+        ]
         out = RawPath(
             header=answer_header(scan_header=message.header, seq=self._seq),
             scan_seq=message.scan_seq,
@@ -262,10 +309,11 @@ class PlannerStage:
 
     def _replan(
         self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
-    ) -> PathPlan:
-        """plan_path from the robot, re-optimised with wider margins while its smoothed curve fails."""
+    ) -> tuple[PathPlan, bool]:
+        """plan_path from the robot, re-optimised with wider margins while its smoothed curve fails; the
+        plan, and whether its smoothed curve verified."""
         config = self.config
-        plan, _ = plan_until_verified(
+        plan, smoothed = plan_until_verified(
             start=position, heading_rad=heading_rad, goals=goals, ellipses=ellipses,
             bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
             settings=config.refine, repairs=config.repairs,
@@ -273,4 +321,4 @@ class PlannerStage:
                                             heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
                                             bounds_min=config.bounds_min, bounds_max=config.bounds_max),
         )
-        return plan
+        return plan, smoothed is not None and smoothed.verification.ok

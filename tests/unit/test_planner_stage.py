@@ -1,10 +1,22 @@
-"""The planner stage pairs each scan's ellipsoids with the robot state of that same scan."""
+"""The planner stage pairs each scan's ellipsoids with the robot state of that same scan, and turns a
+boxed-in car out inside its margin but never past the hard floor."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
+import numpy as np
+
+from cvxnav.geometry import EllipseStack, keep_out_scales
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
-from schemas.scenario import bundled_scenario
+from schemas.scenario import bundled_scenario, load_scenario
+from services.convert import ellipses_from_msgs
+from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage
+from services.smoother.core import smooth
+from services.smoother.stage import SmootherStage
+from sim.guard import PathGuard
 
 SCENARIO = bundled_scenario()
 
@@ -33,3 +45,46 @@ def test_state_first_answers_at_once():
     planner.process(topic="state", message=state(5), now_s=0.0)
     (_, out), = planner.process(topic="ellipsoids", message=ellipsoids(5), now_s=0.0)
     assert out.scan_seq == 5
+
+
+def test_a_car_boxed_in_by_a_grown_cover_turns_out_inside_the_margin_but_not_past_the_hard_floor(scenarios_dir):
+    """field-60 at t = 23.5 s (closed loop): a cover grew round the car as more of its obstacle came into
+    view, and from the car's pose every forward turn crosses the full margin. The planner gives the margin
+    up near the car, down to the floor that keeps the footprint half the safety distance clear, and the
+    curve it publishes verifies and passes the sim's guard."""
+    scenario = load_scenario(scenarios_dir / "field-60.json")
+    doc = json.loads((Path(__file__).parents[1] / "data" / "field60-boxed-in.json").read_text())
+    robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
+    start = np.array([robot.pose.x_m, robot.pose.y_m])
+    planner = PlannerStage.from_scenario(scenario)
+    config = planner.config
+
+    full = EllipseStack.of(ellipses_from_msgs(sensed.ellipsoids))
+    assert full.levels(start).min() > 1.0  # the car is outside every grown ellipse ...
+    plan, smoothed = plan_until_verified(  # ... yet no turn from here verifies with the full margin
+        start=start, heading_rad=robot.pose.theta_rad, goals=config.goals, ellipses=ellipses_from_msgs(sensed.ellipsoids),
+        bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+        settings=config.refine, repairs=config.repairs,
+        smooth_fn=lambda points: smooth(points, ellipses=ellipses_from_msgs(sensed.ellipsoids),
+                                        max_curvature=config.max_curvature, heading_rad=None, goals=config.goals,
+                                        goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
+                                        bounds_max=config.bounds_max))
+    assert smoothed is None or not smoothed.verification.ok
+
+    planner.process(topic="state", message=robot, now_s=0.0)
+    (_, raw), = planner.process(topic="ellipsoids", message=sensed, now_s=0.0)
+    assert raw.status == "ok" and planner.plan_relieved
+    (_, curve), = SmootherStage.from_scenario(scenario).process(topic="raw_path", message=raw, now_s=0.0)
+    assert curve.status == "ok" and curve.max_curvature <= config.max_curvature
+
+    guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
+    guard.know(sensed)
+    assert guard.check(curve.points, start=start) is None
+    used = EllipseStack.of(ellipses_from_msgs(raw.ellipsoids))
+    scale = used.reach / full.reach
+    hard = keep_out_scales(full.semi_axes, inflation_m=scenario.inflation_m, keep_m=scenario.keep_out_m)
+    assert np.all(scale >= hard - 1e-9)
+    shrunk = scale < 1.0 - 1e-9
+    assert shrunk.any()
+    near = np.linalg.norm(full.centers - start, axis=1) - full.reach < 1.0 / config.max_curvature
+    assert np.all(near[shrunk])  # only near the car
