@@ -45,30 +45,46 @@ def test_paper_run_reaches_both_goals(paper_runs):
     assert run.latency_ms.p50 <= run.latency_ms.p99 <= run.latency_ms.max
 
 
-def test_paper_run_is_car_like_and_clear(paper_runs):
-    _, run = paper_runs[0]
+def assert_car_like_and_clear(run: RunFile, scenario) -> None:
+    """Never closer than half the safety distance; speed, heading and curvature those of the car."""
     traj = np.array(run.trajectory)
     t, xy, theta = traj[:, 0], traj[:, 1:3], traj[:, 3]
     assert np.all(np.diff(t) > 0.0)
     # Never touching, and never closer than half the safety distance.
-    assert run.min_clearance >= 0.5 * PAPER.robot.safety_distance
+    assert run.min_clearance >= 0.5 * scenario.robot.safety_distance
     step = np.diff(xy, axis=0)
     ds = np.linalg.norm(step, axis=1)
     dt = np.diff(t)
     # The rear axle obeys max_speed; the footprint centre runs up to sqrt(1 + tan²δ/4) faster in a turn.
-    centre_factor = math.sqrt(1.0 + math.tan(PAPER.robot.max_steering_angle) ** 2 / 4.0)
-    assert np.max(ds / dt) <= PAPER.robot.max_speed * centre_factor + 1e-9
+    centre_factor = math.sqrt(1.0 + math.tan(scenario.robot.max_steering_angle) ** 2 / 4.0)
+    assert np.max(ds / dt) <= scenario.robot.max_speed * centre_factor + 1e-9
     moving = ds > 1e-3
     # Heading follows the motion. The footprint centre sits L/2 ahead of the rear axle, so it side-slips
     # by β = atan(tan δ / 2) in a turn: the chord direction stays within that of the mean heading.
     chord = np.arctan2(step[moving, 1], step[moving, 0])
     mean_heading = theta[:-1][moving] + 0.5 * np.angle(np.exp(1j * (theta[1:] - theta[:-1])))[moving]
-    max_slip = math.atan(0.5 * math.tan(PAPER.robot.max_steering_angle))
+    max_slip = math.atan(0.5 * math.tan(scenario.robot.max_steering_angle))
     assert np.max(np.abs(np.angle(np.exp(1j * (chord - mean_heading))))) <= max_slip + 0.01
     # Curvature of the centre's track ≤ tan(δ_max)/L (the centre turns on a larger radius than the axle).
     dtheta = np.abs(np.angle(np.exp(1j * np.diff(theta))))
     kappa = dtheta[moving] / ds[moving]
-    assert np.max(kappa) <= PAPER.max_curvature * 1.01
+    assert np.max(kappa) <= scenario.max_curvature * 1.01
+
+
+def test_paper_run_is_car_like_and_clear(paper_runs):
+    _, run = paper_runs[0]
+    assert_car_like_and_clear(run, PAPER)
+
+
+@pytest.mark.parametrize("name", ["corner-trap", "narrow-gap"])
+def test_public_scenario_run_reaches_its_goal_car_like_and_clear(name, scenarios_dir, tmp_path):
+    """The trap and the gap too narrow to pass: sensed as the car goes, neither lures it in."""
+    scenario = load_scenario(scenarios_dir / f"{name}.json")
+    proc = cvxnav_run(str(scenarios_dir / f"{name}.json"), "--out", "run.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = RunFile.read(tmp_path / "run.json")
+    assert run.status == "reached" and run.goals_reached == len(scenario.goals)
+    assert_car_like_and_clear(run, scenario)
 
 
 def test_two_lockstep_runs_give_identical_trajectories(paper_runs):
