@@ -136,6 +136,24 @@ def relieved_scales(
     return np.where(near, keep, 1.0)
 
 
+def boxed_in(stack: EllipseStack, *, start: FloatArray, heading_rad: float, max_curvature: float) -> bool:
+    """Whether every arc the car can start on — constant curvature from −κ to κ, over a quarter turn at
+    full lock — enters an ellipse: then no curve from here clears them (a fan of nine arcs; a curve that
+    bends one way and then the other stays between the extreme ones over so short a stretch).
+    """
+    if len(stack) == 0:
+        return False
+    s = np.arange(1, 32) * (0.5 * np.pi / max_curvature / 31)  # arc length along each arc
+    curvature = np.linspace(-max_curvature, max_curvature, 9)[:, None]
+    turned = heading_rad + curvature * s
+    safe = np.where(np.abs(curvature) > 1e-9, curvature, 1.0)
+    sin_term = np.where(np.abs(curvature) > 1e-9, (np.sin(turned) - np.sin(heading_rad)) / safe, s * np.cos(heading_rad))
+    cos_term = np.where(np.abs(curvature) > 1e-9, (np.cos(heading_rad) - np.cos(turned)) / safe, s * np.sin(heading_rad))
+    arcs = np.stack([start[0] + sin_term, start[1] + cos_term], axis=-1)  # (9, 31, 2)
+    levels = stack.levels(arcs.reshape(-1, 2)).min(axis=1).reshape(arcs.shape[:2])
+    return bool(np.all(levels.min(axis=1) < 1.0))
+
+
 def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
     """Each ellipse scaled about its centre by its factor (level ÷ scale)."""
     out = []
@@ -226,37 +244,23 @@ class PlannerStage:
         stack = EllipseStack.of(sensed)
         free = free_start_scales(stack, start=position, inflation_m=config.inflation_m)
         ellipses = scaled(sensed, free)
-
-        def relieved() -> FloatArray:
-            near = relieved_scales(stack, start=position, within_m=1.0 / config.max_curvature,
-                                   inflation_m=config.inflation_m, keep_out_m=config.keep_out_m)
-            return np.minimum(free, near)
+        relief = np.minimum(free, relieved_scales(stack, start=position, within_m=1.0 / config.max_curvature,
+                                                  inflation_m=config.inflation_m, keep_out_m=config.keep_out_m))
 
         # Plan, check and publish against the same ellipses: the smoother verifies against these.
         used = ellipses
         points: FloatArray | None = None
         if self.plan is not None and self.plan_goal_base == goal_base:
-            used = scaled(sensed, relieved()) if self.plan_relieved else ellipses
+            used = scaled(sensed, relief) if self.plan_relieved else ellipses
             points = self._still_valid(position=position, goals=goals, ellipses=used)
         status, reason = "ok", ""
         if points is None:
-            used = ellipses
-            plan, verified = self._replan(position=position, heading_rad=state.pose.theta_rad,
-                                          goals=goals, ellipses=ellipses)
-            relief = False
-            if not verified:
-                scales = relieved()
-                if np.any(scales < free):
-                    candidate = scaled(sensed, scales)
-                    retry, relief = self._replan(position=position, heading_rad=state.pose.theta_rad,
-                                                 goals=goals, ellipses=candidate)
-                    if relief:
-                        plan, used = retry, candidate
-                        logger.info("boxed in at (%.2f, %.2f): planned with the margin near the robot "
-                                    "relieved to the hard floor", *position)
+            plan, used, relieved = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
+                                                ellipses=ellipses,
+                                                relieved=scaled(sensed, relief) if np.any(relief < free) else None)
             self.plan_id += 1
             if plan.status == "ok":
-                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relief
+                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relieved
                 points = plan.points
             else:
                 logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
@@ -308,17 +312,41 @@ class PlannerStage:
             back = 2 if back == 0 else 2 * back
 
     def _replan(
-        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
-    ) -> tuple[PathPlan, bool]:
-        """plan_path from the robot, re-optimised with wider margins while its smoothed curve fails; the
-        plan, and whether its smoothed curve verified."""
+        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
+        relieved: list[Ellipse] | None,
+    ) -> tuple[PathPlan, list[Ellipse], bool]:
+        """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones.
+
+        The full margin first, re-optimised with the repairs' wider margins while the smoothed curve
+        fails. A car that grown covers have boxed in (`boxed_in`) gets no curve verified at any of
+        those margins, and trying them all costs seconds: it plans against the `relieved` ellipses
+        (the margin near it given up down to the hard floor) first. Whichever comes first, the other
+        is tried when it does not verify; with neither verified, the full-margin plan is returned.
+        """
         config = self.config
-        plan, smoothed = plan_until_verified(
-            start=position, heading_rad=heading_rad, goals=goals, ellipses=ellipses,
-            bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
-            settings=config.refine, repairs=config.repairs,
-            smooth_fn=lambda points: smooth(points, ellipses=ellipses, max_curvature=config.max_curvature,
-                                            heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
-                                            bounds_min=config.bounds_min, bounds_max=config.bounds_max),
-        )
-        return plan, smoothed is not None and smoothed.verification.ok
+        options = [(ellipses, config.repairs, False)]
+        if relieved is not None:
+            relief_first = boxed_in(EllipseStack.of(ellipses), start=position, heading_rad=heading_rad,
+                                    max_curvature=config.max_curvature)
+            option = (relieved, config.repairs[-1:], True)
+            options = [option, *options] if relief_first else [*options, option]
+        fallback: tuple[PathPlan, list[Ellipse], bool] | None = None
+        for used, repairs, relief in options:
+            plan, smoothed = plan_until_verified(
+                start=position, heading_rad=heading_rad, goals=goals, ellipses=used,
+                bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+                settings=config.refine, repairs=repairs,
+                smooth_fn=lambda points, used=used: smooth(
+                    points, ellipses=used, max_curvature=config.max_curvature, heading_rad=None, goals=goals,
+                    goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
+                    bounds_max=config.bounds_max),
+            )
+            if smoothed is not None and smoothed.verification.ok:
+                if relief:
+                    logger.info("boxed in at (%.2f, %.2f): planned with the margin near the robot relieved "
+                                "to the hard floor", *position)
+                return plan, used, relief
+            if not relief:
+                fallback = (plan, used, relief)
+        assert fallback is not None  # the full-margin option is always tried
+        return fallback

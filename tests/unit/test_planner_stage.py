@@ -13,7 +13,7 @@ from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario
 from services.convert import ellipses_from_msgs
 from services.planner.core import plan_until_verified
-from services.planner.stage import PlannerStage
+from services.planner.stage import PlannerStage, boxed_in
 from services.smoother.core import smooth
 from services.smoother.stage import SmootherStage
 from sim.guard import PathGuard
@@ -61,6 +61,9 @@ def test_a_car_boxed_in_by_a_grown_cover_turns_out_inside_the_margin_but_not_pas
 
     full = EllipseStack.of(ellipses_from_msgs(sensed.ellipsoids))
     assert full.levels(start).min() > 1.0  # the car is outside every grown ellipse ...
+    heading = robot.pose.theta_rad
+    assert boxed_in(full, start=start, heading_rad=heading, max_curvature=config.max_curvature)
+    assert not boxed_in(full, start=start, heading_rad=heading + np.pi, max_curvature=config.max_curvature)
     plan, smoothed = plan_until_verified(  # ... yet no turn from here verifies with the full margin
         start=start, heading_rad=robot.pose.theta_rad, goals=config.goals, ellipses=ellipses_from_msgs(sensed.ellipsoids),
         bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
