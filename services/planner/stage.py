@@ -7,7 +7,9 @@ current plan trimmed to start where the robot is, under the same `plan_id`.
 
 A replan starts at the robot's pose and heading and runs through the remaining goals. When the smoothed
 curve of a new plan would fail verification, the plan is re-optimised with wider margins (the same
-repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept.
+repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept. A car that
+newly grown covers have boxed in, with no turn left inside the full margin, plans with the margin
+within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
