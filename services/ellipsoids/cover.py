@@ -27,6 +27,9 @@ __all__ = ["cover_points", "cover_polygon", "excess_over_points", "excess_over_p
 Fit = Callable[[FloatArray], Ellipse]
 _ISOTROPIC_RATIO = 1.01  # second moments closer than this: the principal axis is ill-defined
 _AREA_EPS = 1e-12
+_COARSE = 4  # excess_over_points: the coarse samples are every 4th ring and angle ...
+_COARSE_FROM = 256  # ... when there are more samples than this
+_BOUND_SLACK_M = 1e-9  # a bound this close to the coarse maximum is queried (rounding)
 
 
 # --------------------------------------------------------------------------- excess
@@ -77,15 +80,31 @@ def excess_over_points(ellipse: Ellipse, points: ArrayLike | cKDTree, *, toleran
     bound it: a ring of samples (a round room seen from inside) has an MVEE whose boundary hugs the
     samples while its interior is free space. The region is therefore sampled on concentric rings
     (levels k/m, m ≤ 16, plus the centre) as well as the boundary.
+
+    The maximum over the samples is found without querying most of them: the distance to the points
+    is 1-Lipschitz, so a sample s no further than δ from a coarse sample c (every `_COARSE`-th ring
+    and angle) has d(s) ≤ d(c) + δ, and only samples whose bound reaches the coarse maximum are
+    queried. The result is the same maximum over the same samples.
     """
     tree = points if isinstance(points, cKDTree) else cKDTree(np.atleast_2d(np.asarray(points, dtype=float)))
     boundary = _boundary_samples(ellipse, tolerance_m=tolerance_m)
     centre = ellipse.center
     rings = int(np.clip(np.ceil(ellipse.semi_axes[0] / (0.5 * tolerance_m)), 1, 16))
     levels = np.arange(rings + 1)[:, None, None] / rings
-    samples = (centre + levels * (boundary - centre)[None, :, :]).reshape(-1, 2)
-    distance, _ = tree.query(samples)
-    return float(np.max(distance))
+    samples = centre + levels * (boundary - centre)[None, :, :]  # (rings + 1, n, 2)
+    if samples.shape[0] * samples.shape[1] <= _COARSE_FROM:
+        return float(np.max(tree.query(samples.reshape(-1, 2))[0]))
+    k = np.minimum(np.rint(np.arange(rings + 1) / _COARSE) * _COARSE, rings).astype(int)
+    j = (np.rint(np.arange(samples.shape[1]) / _COARSE) * _COARSE).astype(int) % samples.shape[1]
+    coarse_k, coarse_j = np.unique(k), np.unique(j)
+    coarse = np.full((rings + 1, samples.shape[1]), np.nan)
+    coarse[np.ix_(coarse_k, coarse_j)] = tree.query(samples[np.ix_(coarse_k, coarse_j)].reshape(-1, 2))[0].reshape(
+        len(coarse_k), len(coarse_j))
+    lower = float(np.nanmax(coarse))
+    nearest = samples[k[:, None], j[None, :]]
+    bound = coarse[k[:, None], j[None, :]] + np.linalg.norm(samples - nearest, axis=2)
+    candidates = samples[bound + _BOUND_SLACK_M >= lower]
+    return max(lower, float(np.max(tree.query(candidates)[0], initial=0.0)))
 
 
 # --------------------------------------------------------------------------- splitting

@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from cvxnav.geometry import EllipseStack
-from services.ellipsoids.cover import cover_points, cover_polygon, excess_over_points, excess_over_polygon
-from services.ellipsoids.mvee import mvee
+from services.ellipsoids.cover import (
+    _boundary_samples,
+    cover_points,
+    cover_polygon,
+    excess_over_points,
+    excess_over_polygon,
+)
+from services.ellipsoids.mvee import mvee, mvee_fast
 
 BOX = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]])
 
@@ -77,3 +84,22 @@ def test_ring_of_wall_samples_does_not_swallow_the_room():
 def test_duplicated_points_stop_splitting():
     ellipses = cover_points(np.repeat([[1.0, 1.0]], 5, axis=0), tolerance_m=0.1)
     assert len(ellipses) == 1
+
+
+def _excess_over_every_sample(ellipse, points, *, tolerance_m):
+    """The definition excess_over_points computes: the largest distance over all of its region samples."""
+    boundary = _boundary_samples(ellipse, tolerance_m=tolerance_m)
+    rings = int(np.clip(np.ceil(ellipse.semi_axes[0] / (0.5 * tolerance_m)), 1, 16))
+    levels = np.arange(rings + 1)[:, None, None] / rings
+    samples = (ellipse.center + levels * (boundary - ellipse.center)[None, :, :]).reshape(-1, 2)
+    return float(np.max(cKDTree(points).query(samples)[0]))
+
+
+@pytest.mark.parametrize("shape", ["l-wall", "ring", "blob", "few"])
+def test_excess_over_points_prunes_samples_but_not_the_maximum(shape):
+    rng = np.random.default_rng(3)
+    points = {"l-wall": _l_wall(), "ring": 3.0 * np.column_stack([np.cos(a := np.linspace(0, 6.0, 300)), np.sin(a)]),
+              "blob": rng.normal(size=(200, 2)), "few": rng.uniform(0.0, 0.3, size=(6, 2))}[shape]
+    for part in (points, points[: len(points) // 3], points[::7]):
+        e = mvee_fast(part)
+        assert excess_over_points(e, part, tolerance_m=0.1) == _excess_over_every_sample(e, part, tolerance_m=0.1)
