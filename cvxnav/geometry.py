@@ -140,7 +140,7 @@ class EllipseStack:
     def of(cls, ellipses: list[Ellipse]) -> EllipseStack:
         if not ellipses:
             return cls(A=np.zeros((0, 2, 2)), b=np.zeros((0, 2)))
-        return cls(A=np.stack([e.A for e in ellipses]), b=np.stack([e.b for e in ellipses]))
+        return cls(A=np.array([e.A for e in ellipses]), b=np.array([e.b for e in ellipses]))
 
     def __len__(self) -> int:
         return self.A.shape[0]

@@ -46,7 +46,7 @@ def _straight(
     start: FloatArray,
     heading_rad: float | None,
     goals: FloatArray,
-    ellipses: list[Ellipse],
+    stack: EllipseStack,
     bounds_min: FloatArray,
     bounds_max: FloatArray,
     settings: RefineSettings,
@@ -64,7 +64,8 @@ def _straight(
         directions = np.vstack([[np.cos(heading_rad), np.sin(heading_rad)], directions])
     if np.any(np.einsum("ij,ij->i", directions[:-1], directions[1:]) < np.cos(_STRAIGHT_TOLERANCE_RAD)):
         return None
-    if len(intersected(reference, ellipses, level=settings.level)):
+    # A leg or two against every ellipse: the exact test on all pairs is cheaper than a broad phase.
+    if len(stack) and np.min(stack.segment_levels(reference[:-1], reference[1:])) < settings.level:
         return None
     n = int(np.ceil(lengths.sum() / settings.spacing_m)) + 1
     points, goal_indices = resample_legs([reference[k : k + 2] for k in range(len(goals))], n=max(n, len(goals) + 2))
@@ -132,7 +133,7 @@ def plan_path(
         start=start,
         heading_rad=heading_rad,
         goals=goals,
-        ellipses=ellipses,
+        stack=stack,
         bounds_min=bounds_min,
         bounds_max=bounds_max,
         settings=settings,

@@ -59,8 +59,9 @@ def bspline(control: FloatArray) -> BSpline:
 def _parameters(curve: BSpline) -> FloatArray:
     """Parameter samples: SAMPLES_PER_SPAN per knot span, knots included."""
     breaks = curve.t[3:-3]
-    fine = [np.linspace(a, b, SAMPLES_PER_SPAN, endpoint=False) for a, b in zip(breaks[:-1], breaks[1:])]
-    return np.concatenate([*fine, [breaks[-1]]])
+    fraction = np.arange(SAMPLES_PER_SPAN) / SAMPLES_PER_SPAN
+    fine = breaks[:-1, None] + np.diff(breaks)[:, None] * fraction[None, :]
+    return np.concatenate([fine.ravel(), breaks[-1:]])
 
 
 def verify(
@@ -95,6 +96,38 @@ def verify(
         deviation = np.maximum(acc[:-1], acc[1:]) * du**2 / 8.0
         min_level = float(np.min(EllipseStack.of(ellipses).min_segment_levels(z[:-1], z[1:], sag_m=deviation)))
 
+    return _judge(
+        z,
+        direction=d1[0] / speed[0],
+        min_level=min_level,
+        max_kappa=max_kappa,
+        max_curvature=max_curvature,
+        start=start,
+        heading_rad=heading_rad,
+        goals=goals,
+        goal_tolerance_m=goal_tolerance_m,
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+    )
+
+
+def _judge(
+    z: FloatArray,
+    *,
+    direction: FloatArray,
+    min_level: float,
+    max_kappa: float,
+    max_curvature: float,
+    start: FloatArray,
+    heading_rad: float | None,
+    goals: FloatArray,
+    goal_tolerance_m: float,
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+) -> Verification:
+    """The verdict from the curve's samples `z` (ordered, the ends included), its unit direction at
+    the start, its clearance lower bound and its largest curvature."""
+
     def fail(reason: str) -> Verification:
         return Verification(False, min_level, max_kappa, reason)
 
@@ -105,7 +138,6 @@ def verify(
     if np.linalg.norm(z[0] - start) > 1e-6:
         return fail("curve does not start at the start")
     if heading_rad is not None:
-        direction = d1[0] / speed[0]
         misalignment = np.arccos(np.clip(direction @ [np.cos(heading_rad), np.sin(heading_rad)], -1.0, 1.0))
         if misalignment > 1e-3:
             return fail(f"curve leaves the start {misalignment:.4f} rad off the heading")
@@ -126,9 +158,38 @@ def sample(curve: BSpline, *, spacing_m: float) -> FloatArray:
     u = np.linspace(0.0, 1.0, 64 * (len(curve.c) + 1))
     z = curve(u)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
-    count = max(2, int(np.ceil(s[-1] / (0.95 * spacing_m))) + 1)
-    targets = np.linspace(0.0, s[-1], count)
+    targets = np.linspace(0.0, s[-1], _sample_count(s[-1], spacing_m=spacing_m))
     return curve(np.interp(targets, s, u))
+
+
+def _sample_count(length_m: float, *, spacing_m: float) -> int:
+    return max(2, int(np.ceil(length_m / (0.95 * spacing_m))) + 1)
+
+
+def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
+    """(unit direction, largest offset δ from the chord, curvature bound) when the control points
+    advance strictly along the chord z₀ → zₙ within 1e-9 of it, else None.
+
+    The curve is then the chord up to δ: each point of a B-spline is a convex combination of its
+    control points (the phantom ends mirror z₁ and zₙ₋₁ and stay within δ too), and its progress
+    along the chord is the B-spline of increasing values — increasing from z₀ to zₙ, no cusp. On
+    uniform knots h apart B′ = Σ Δcᵢ Nᵢ/h and B″ = Σ Δ²cᵢ Nᵢ/h² (convex weights), so with steps
+    along the chord ≥ s, |Δ² along| ≤ a and normal offsets within δ: |B′| ≥ s/h, |B′ₙ| ≤ 2δ/h,
+    |B″ₙ| ≤ 4δ/h², |B″ₜ| ≤ a/h², and κ = |B′ × B″|/|B′|³ ≤ (4δ + 2δ a/s)/s².
+    """
+    chord = control[-1] - control[0]
+    length = float(np.linalg.norm(chord))
+    if length <= 0.0:
+        return None
+    direction = chord / length
+    relative = control - control[0]
+    steps = np.diff(relative @ direction)
+    offset = float(np.max(np.abs(relative @ [-direction[1], direction[0]])))
+    if offset > 1e-9 * max(length, 1.0) or np.any(steps <= 0.0):
+        return None
+    shortest = float(steps.min())
+    bend = float(np.max(np.abs(np.diff(steps)), initial=0.0))
+    return direction, offset, (4.0 * offset + 2.0 * offset * bend / shortest) / shortest**2
 
 
 def smooth(
@@ -145,6 +206,23 @@ def smooth(
 ) -> Smoothed:
     """Smooth the optimised points into a verified curve, sampled for publication."""
     control = np.asarray(control, dtype=float)
+    straight = _straight(control) if len(control) >= 3 else None
+    if straight is not None:
+        return _smooth_straight(
+            control[0],
+            control[-1],
+            direction=straight[0],
+            offset_m=straight[1],
+            curvature_bound=straight[2],
+            ellipses=ellipses,
+            max_curvature=max_curvature,
+            heading_rad=heading_rad,
+            goals=goals,
+            goal_tolerance_m=goal_tolerance_m,
+            bounds_min=bounds_min,
+            bounds_max=bounds_max,
+            output_spacing_m=output_spacing_m,
+        )
     curve = bspline(control)
     verification = verify(
         curve,
@@ -158,3 +236,47 @@ def smooth(
         bounds_max=bounds_max,
     )
     return Smoothed(points=sample(curve, spacing_m=output_spacing_m), verification=verification)
+
+
+def _smooth_straight(
+    start: FloatArray,
+    end: FloatArray,
+    *,
+    direction: FloatArray,
+    offset_m: float,
+    curvature_bound: float,
+    ellipses: list[Ellipse],
+    max_curvature: float,
+    heading_rad: float | None,
+    goals: FloatArray,
+    goal_tolerance_m: float,
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    output_spacing_m: float,
+) -> Smoothed:
+    """A straight curve (see `_straight`): one eq. 2 segment test proves it clear, widened by its offset
+    from the chord; the other checks run on its samples, which are the points published."""
+    length = float(np.linalg.norm(end - start))
+    t = np.linspace(0.0, 1.0, _sample_count(length, spacing_m=output_spacing_m))
+    points = start + t[:, None] * (end - start)
+    min_level = np.inf
+    if ellipses:
+        # One segment against every ellipse (no broad phase needed); the offset is scaled into each
+        # ellipse's frame by ‖Aⱼ‖_F ≥ ‖Aⱼ‖₂, as in `EllipseStack.min_segment_levels`.
+        stack = EllipseStack.of(ellipses)
+        levels = stack.segment_levels(start[None], end[None])[0] - offset_m * np.linalg.norm(stack.A, axis=(1, 2))
+        min_level = float(np.min(levels))
+    verification = _judge(
+        points,
+        direction=direction,
+        min_level=min_level,
+        max_kappa=curvature_bound,
+        max_curvature=max_curvature,
+        start=start,
+        heading_rad=heading_rad,
+        goals=goals,
+        goal_tolerance_m=goal_tolerance_m,
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+    )
+    return Smoothed(points=points, verification=verification)

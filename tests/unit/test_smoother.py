@@ -89,3 +89,21 @@ def test_missed_goal_and_wrong_heading_are_rejected():
 def test_sample_spacing_is_bounded():
     points = sample(bspline(_arc(5.0)), spacing_m=0.05)
     assert np.linalg.norm(np.diff(points, axis=0), axis=1).max() <= 0.05
+
+
+def test_straight_control_points_are_judged_as_the_chord_they_are():
+    # Evenly spaced points on a line: the B-spline is the chord, so one exact segment test decides.
+    control = np.linspace([0.0, 0.0], [10.0, 10.0], 158)
+    near = Ellipse.from_axes(center=[5.0, 3.0], semi_axes=[2.0, 1.0], angle_rad=0.3)
+    common = dict(max_curvature=1.0, heading_rad=np.pi / 4, goals=np.array([[10.0, 10.0]]), goal_tolerance_m=0.3, **BOUNDS)
+    fast = smooth(control, ellipses=[near], **common)
+    general = verify(bspline(control), ellipses=[near], start=control[0], **common)
+    assert fast.verification.ok and general.ok
+    assert fast.verification.min_level == pytest.approx(general.min_level, rel=1e-9)
+    assert fast.verification.max_curvature <= 1e-6
+    assert np.linalg.norm(np.diff(fast.points, axis=0), axis=1).max() <= 0.05
+    assert np.allclose(fast.points[[0, -1]], control[[0, -1]])
+    blocking = Ellipse.circle(center=[5.0, 5.2], radius=0.5)
+    assert "enters an ellipse" in smooth(control, ellipses=[near, blocking], **common).verification.reason
+    turned = dict(common, heading_rad=0.0)
+    assert "heading" in smooth(control, ellipses=[near], **turned).verification.reason
