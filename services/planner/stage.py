@@ -27,21 +27,21 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
 from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales
+from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
 from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
 from schemas.scenario import Scenario
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
 from services.limits import Reach
 from services.planner.core import PathPlan, intersected, plan_until_verified
-from services.planner.refine import RefineSettings
+from services.planner.refine import RefineSettings, SolverFailure, refine
 from services.smoother.core import smooth
 
 logger = logging.getLogger(__name__)
@@ -69,6 +69,7 @@ class PlannerConfig:
     # the known-map margin, for a car boxed in near obstacles that the wide margin leaves no turn from.
     repairs: tuple[tuple[float, float], ...] = ((1.15, 0.8), (1.2, 0.65), (1.02, 0.97))
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
+    repair_slack_m: float = 0.5  # a warm repair of the plan may lengthen it by this much (`_repair`)
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> PlannerConfig:
@@ -256,6 +257,12 @@ class PlannerStage:
             used = scaled(sensed, relief) if self.plan_relieved else ellipses
             points = self._still_valid(position=position, goals=goals, ellipses=used)
         status, reason = "ok", ""
+        if points is None and self.plan is not None and self.plan_goal_base == goal_base:
+            points = self._repair(position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=used)
+            if points is not None:
+                self.plan_id += 1
+                self.plan = points
+                self._save()
         if points is None:
             plan, used, relieved = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
                                                 ellipses=ellipses,
@@ -285,6 +292,53 @@ class PlannerStage:
         )
         self._seq += 1
         return [("raw_path", out)]
+
+    def _repair(
+        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
+    ) -> FloatArray | None:
+        """The current plan, no longer valid, re-optimised from the robot's pose as the first iterate of
+        the refinement; None unless that is a local change whose smoothed curve verifies.
+
+        New obstacles (or a grown cover) usually only nudge the plan, and a warm start from it needs a
+        couple of convex solves where a fresh plan searches routes and tries every margin of the repair
+        ladder (seconds, when the car is in a tight spot). The warm start keeps the plan's way round
+        every obstacle, which the route search chose globally; that choice is only kept while the
+        repair lengthens the rest of the path by at most `repair_slack_m` — a longer detour re-opens
+        it, and the stage replans from scratch. The base margin is tried first, then the known-map one.
+        """
+        config = self.config
+        assert self.plan is not None
+        trimmed, off_m = trim_to_robot(self.plan, position=position)
+        if off_m > config.max_cross_track_m or len(trimmed) < 3:
+            return None
+        ahead = np.vstack([position, trimmed[1:]])
+        legs, cut = [], 0
+        for goal in goals:  # one leg per goal, so that refine pins every goal the plan passes through
+            hits = np.flatnonzero(np.linalg.norm(ahead[cut:] - goal, axis=1) < 1e-6)
+            if len(hits) == 0:
+                return None
+            end = cut + int(hits[0])
+            if end == cut:
+                return None
+            legs.append(ahead[cut : end + 1])
+            cut = end
+        longest_m = polyline_length(ahead) + config.repair_slack_m
+        for level, factor in ((config.refine.level, config.refine.curvature_factor), config.repairs[-1]):
+            try:
+                refined = refine(legs=legs, ellipses=ellipses, bounds_min=config.bounds_min,
+                                 bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+                                 heading_rad=heading_rad,
+                                 settings=replace(config.refine, level=level, curvature_factor=factor))
+            except SolverFailure:
+                continue
+            if len(intersected(refined.points, ellipses)) or polyline_length(refined.points) > longest_m:
+                continue
+            checked = smooth(refined.points, ellipses=ellipses, max_curvature=config.max_curvature, heading_rad=None,
+                             goals=goals, goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
+                             bounds_max=config.bounds_max)
+            if checked.verification.ok:
+                return refined.points
+        return None
 
     def _still_valid(self, *, position: FloatArray, goals: FloatArray, ellipses: list[Ellipse]) -> FloatArray | None:
         """The current plan trimmed to the robot, if it is still clear and still smooths; else None.

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cvxnav.geometry import EllipseStack, keep_out_scales
+from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario
-from services.convert import ellipses_from_msgs
+from services.convert import ellipse_to_msg, ellipses_from_msgs
 from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage, boxed_in
 from services.smoother.core import smooth
@@ -91,3 +91,36 @@ def test_a_car_boxed_in_by_a_grown_cover_turns_out_inside_the_margin_but_not_pas
     assert shrunk.any()
     near = np.linalg.norm(full.centers - start, axis=1) - full.reach < 1.0 / config.max_curvature
     assert np.all(near[shrunk])  # only near the car
+
+
+def _ellipsoids_with(seq: int, *circles: tuple[tuple[float, float], float]) -> Ellipsoids:
+    wire = [ellipse_to_msg(Ellipse.circle(center=c, radius=r), group=k, cluster_id=k) for k, (c, r) in enumerate(circles)]
+    return Ellipsoids(header=Header(stamp_s=0.1 * seq, seq=seq), scan_seq=seq, inflation_m=SCENARIO.inflation_m,
+                      ellipsoids=wire)
+
+
+def test_a_plan_that_a_grown_cover_invalidates_is_repaired_on_the_same_side_of_it():
+    planner = PlannerStage.from_scenario(SCENARIO)
+    centre = np.array([4.0, 5.2])  # just left of the diagonal to the first goal: the plan passes right of it
+    planner.process(topic="state", message=state(0), now_s=0.0)
+    (_, first), = planner.process(topic="ellipsoids", message=_ellipsoids_with(0, (tuple(centre), 1.0)), now_s=0.0)
+    before = np.array(first.points)
+    goal = SCENARIO.goals_array[0]
+
+    def side(point):  # which side of the line start → first goal
+        return np.sign(goal[0] * point[1] - goal[1] * point[0])
+
+    def passes(path):  # the side of the obstacle's centre the path passes on
+        return side(path[np.argmin(np.linalg.norm(path - centre, axis=1))] - centre)
+
+    assert passes(before) == -side(centre)  # round the far side of it
+    grown = 1.25  # the cover grows: the kept plan now runs through it
+    assert np.min(np.linalg.norm(before - centre, axis=1)) < grown
+    planner.process(topic="state", message=state(1), now_s=0.0)
+    (_, second), = planner.process(topic="ellipsoids", message=_ellipsoids_with(1, (tuple(centre), grown)), now_s=0.0)
+    after = np.array(second.points)
+    assert second.status == "ok" and second.plan_id == first.plan_id + 1
+    assert np.min(np.linalg.norm(after - centre, axis=1)) >= grown
+    assert passes(after) == passes(before)
+    (_, curve), = SmootherStage.from_scenario(SCENARIO).process(topic="raw_path", message=second, now_s=0.0)
+    assert curve.status == "ok"
