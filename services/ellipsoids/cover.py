@@ -11,18 +11,20 @@ the obstacle whatever the stopping point.
 
 from __future__ import annotations
 
+import functools
 import heapq
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from cvxnav.geometry import Ellipse, FloatArray
-from services.ellipsoids.mvee import FitError, mvee_fast
+from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
 
-__all__ = ["cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon"]
+__all__ = ["Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon", "point_cover"]
 
 Fit = Callable[[FloatArray], Ellipse]
 _ISOTROPIC_RATIO = 1.01  # second moments closer than this: the principal axis is ill-defined
@@ -30,6 +32,7 @@ _AREA_EPS = 1e-12
 _COARSE = 4  # excess_over_points: the coarse samples are every 4th ring and angle ...
 _COARSE_FROM = 256  # ... when there are more samples than this
 _BOUND_SLACK_M = 1e-9  # a bound this close to the coarse maximum is queried (rounding)
+_DEGENERATE_M = 1e-3  # mvee_fast's eps_m: a thinner set is fattened before it is fitted
 
 
 # --------------------------------------------------------------------------- excess
@@ -87,13 +90,21 @@ def excess_over_points(ellipse: Ellipse, points: ArrayLike | cKDTree, *, toleran
     queried. The result is the same maximum over the same samples.
     """
     tree = points if isinstance(points, cKDTree) else cKDTree(np.atleast_2d(np.asarray(points, dtype=float)))
+    return _excess_over_points(ellipse, tree, tolerance_m=tolerance_m)[0]
+
+
+def _excess_over_points(ellipse: Ellipse, tree: cKDTree, *, tolerance_m: float) -> tuple[float, FloatArray]:
+    """`excess_over_points` and a region sample at which it is attained."""
     boundary = _boundary_samples(ellipse, tolerance_m=tolerance_m)
     centre = ellipse.center
     rings = int(np.clip(np.ceil(ellipse.semi_axes[0] / (0.5 * tolerance_m)), 1, 16))
     levels = np.arange(rings + 1)[:, None, None] / rings
     samples = centre + levels * (boundary - centre)[None, :, :]  # (rings + 1, n, 2)
     if samples.shape[0] * samples.shape[1] <= _COARSE_FROM:
-        return float(np.max(tree.query(samples.reshape(-1, 2))[0]))
+        flat = samples.reshape(-1, 2)
+        distance = tree.query(flat)[0]
+        worst = int(np.argmax(distance))
+        return float(distance[worst]), flat[worst]
     k = np.minimum(np.rint(np.arange(rings + 1) / _COARSE) * _COARSE, rings).astype(int)
     j = (np.rint(np.arange(samples.shape[1]) / _COARSE) * _COARSE).astype(int) % samples.shape[1]
     coarse_k, coarse_j = np.unique(k), np.unique(j)
@@ -103,8 +114,10 @@ def excess_over_points(ellipse: Ellipse, points: ArrayLike | cKDTree, *, toleran
     lower = float(np.nanmax(coarse))
     nearest = samples[k[:, None], j[None, :]]
     bound = coarse[k[:, None], j[None, :]] + np.linalg.norm(samples - nearest, axis=2)
-    candidates = samples[bound + _BOUND_SLACK_M >= lower]
-    return max(lower, float(np.max(tree.query(candidates)[0], initial=0.0)))
+    candidates = samples[bound + _BOUND_SLACK_M >= lower]  # the coarse maximum's sample among them
+    distance = tree.query(candidates)[0]
+    worst = int(np.argmax(distance))
+    return float(distance[worst]), candidates[worst]
 
 
 # --------------------------------------------------------------------------- splitting
@@ -193,35 +206,65 @@ def _split_points(points: FloatArray) -> list[FloatArray]:
 # --------------------------------------------------------------------------- covers
 
 
+@dataclass(eq=False)
+class Piece:
+    """A node of a cover's split tree: a piece of the obstacle, its ellipse and how far that sticks out.
+
+    A point cover's tree is what the next cover of the same cloud may reuse (`point_cover`): there
+    `support` holds the piece's points that carry the fit's dual weight (None when not known: a
+    degenerate piece, or another fit) and `worst` a region sample at which `excess_m` is attained.
+    """
+
+    points: FloatArray  # polygon vertices, or sensed points in the cloud's order
+    ellipse: Ellipse
+    excess_m: float
+    support: FloatArray | None = None
+    worst: FloatArray | None = None
+    children: list[Piece] = field(default_factory=list)
+
+    @functools.cached_property
+    def box(self) -> FloatArray:
+        """Bounding box: rows low, high."""
+        return np.array([self.points.min(axis=0), self.points.max(axis=0)])
+
+
+@dataclass(frozen=True)
+class Cover:
+    root: Piece  # the split tree, to pass to the next cover of the same cloud as `previous`
+    pieces: list[Piece]  # its leaves: the cover
+
+
 def _cover(
     first: FloatArray,
     *,
-    fit: Fit,
-    excess: Callable[[Ellipse, FloatArray], float],
+    make: Callable[[FloatArray, Piece | None], Piece],
     split: Callable[[FloatArray], list[FloatArray]],
     tolerance_m: float,
     max_pieces: int,
-) -> list[Ellipse]:
-    """Split the worst piece while its excess exceeds the tolerance and the piece budget allows."""
+) -> Cover:
+    """Split the worst piece while its excess exceeds the tolerance and the piece budget allows.
+
+    `make(points, parent)` fits a piece and measures its excess.
+    """
     if tolerance_m <= 0.0 or max_pieces < 1:
         raise ValueError("tolerance_m must be positive and max_pieces at least 1")
     order = itertools.count()
-    done: list[Ellipse] = []
-    e = fit(first)
-    heap = [(-excess(e, first), next(order), first, e)]
+    done: list[Piece] = []
+    root = make(first, None)
+    heap = [(-root.excess_m, next(order), root)]
     while heap:
-        worst, _, piece, e = heap[0]
+        worst, _, piece = heap[0]
         if -worst <= tolerance_m or len(heap) + len(done) >= max_pieces:
             break
         heapq.heappop(heap)
-        children = split(piece)
+        children = split(piece.points)
         if len(children) < 2:  # cannot be split further (e.g. duplicated points): keep it as is
-            done.append(e)
+            done.append(piece)
             continue
         for child in children:
-            ce = fit(child)
-            heapq.heappush(heap, (-excess(ce, child), next(order), child, ce))
-    return done + [item[3] for item in sorted(heap, key=lambda item: item[1])]
+            piece.children.append(make(child, piece))
+            heapq.heappush(heap, (-piece.children[-1].excess_m, next(order), piece.children[-1]))
+    return Cover(root=root, pieces=done + [item[2] for item in sorted(heap, key=lambda item: item[1])])
 
 
 def cover_polygon(
@@ -239,14 +282,13 @@ def cover_polygon(
     polygon = _ccw(np.atleast_2d(np.asarray(vertices, dtype=float)))
     if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) == 0:
         raise FitError(f"vertices must be a non-empty (n, 2) array, got shape {polygon.shape}")
-    return _cover(
-        polygon,
-        fit=fit,
-        excess=lambda e, piece: excess_over_polygon(e, polygon, tolerance_m=tolerance_m),
-        split=_split_polygon,
-        tolerance_m=tolerance_m,
-        max_pieces=max_pieces,
-    )
+
+    def make(piece: FloatArray, parent: Piece | None) -> Piece:
+        e = fit(piece)
+        return Piece(points=piece, ellipse=e, excess_m=excess_over_polygon(e, polygon, tolerance_m=tolerance_m))
+
+    cover = _cover(polygon, make=make, split=_split_polygon, tolerance_m=tolerance_m, max_pieces=max_pieces)
+    return [piece.ellipse for piece in cover.pieces]
 
 
 def cover_points(
@@ -258,16 +300,90 @@ def cover_points(
     ellipse (region, not just boundary) to the nearest sample of the piece, never to their hull (a
     room's perimeter wall would otherwise swallow the room). Pieces are split by the
     line through their mean perpendicular to their principal axis; every input point ends up inside
-    the ellipse of its piece.
+    the ellipse of its piece. `fit` may be `mvee` to use the solver.
     """
+    fit_support = mvee_fast_support if fit is mvee_fast else lambda piece: (fit(piece), None)
+    cover = _point_cover(points, fit=fit_support, previous=(), tolerance_m=tolerance_m, max_pieces=max_pieces)
+    return [piece.ellipse for piece in cover.pieces]
+
+
+def point_cover(
+    points: ArrayLike, *, previous: Sequence[Piece] = (), tolerance_m: float = 0.1, max_pieces: int = 64
+) -> Cover:
+    """`cover_points`' cover with its split tree, reusing the fits of `previous` trees where they are exact.
+
+    A sensed cloud grows a few points per scan. The MVEE of a set is
+    fixed by its support (the points carrying dual weight): if a new piece holds every support point
+    of an earlier piece and lies inside its ellipse E, its MVEE is E (E contains it; any ellipse that
+    contains it contains the support, whose MVEE is E; the MVEE is unique). A piece is compared with
+    the earlier pieces at its place in the tree whose bounding boxes meet its own: the roots of
+    `previous` for the root, the children of those its parent was compared with for a child. The
+    excess of a reused ellipse is kept when no earlier point is lost and every added point is at
+    least the excess away from the sample where it was attained (adding points lowers the distance
+    nowhere else above it), and measured afresh otherwise. Splits are computed from the points as
+    always, so the cover is the one `cover_points` gives, up to the fit's own tolerance. (The split
+    lines run through the pieces' means, so points added at one end move them all: a point that
+    crosses one is a support point of the piece it leaves, and both pieces are refitted.)
+    """
+    return _point_cover(points, fit=mvee_fast_support, previous=previous, tolerance_m=tolerance_m,
+                        max_pieces=max_pieces)
+
+
+def _point_cover(
+    points: ArrayLike,
+    *,
+    fit: Callable[[FloatArray], tuple[Ellipse, IntArray | None]],
+    previous: Sequence[Piece],
+    tolerance_m: float,
+    max_pieces: int,
+) -> Cover:
     z = np.atleast_2d(np.asarray(points, dtype=float))
     if z.ndim != 2 or z.shape[1] != 2 or len(z) == 0:
         raise FitError(f"points must be a non-empty (n, 2) array, got shape {z.shape}")
-    return _cover(
-        z,
-        fit=fit,
-        excess=lambda e, piece: excess_over_points(e, piece, tolerance_m=tolerance_m),
-        split=_split_points,
-        tolerance_m=tolerance_m,
-        max_pieces=max_pieces,
-    )
+    compared: dict[int, list[Piece]] = {}  # id(piece) -> the earlier pieces it was compared with
+
+    def make(piece: FloatArray, parent: Piece | None) -> Piece:
+        earlier = previous if parent is None else [child for e in compared[id(parent)] for child in e.children]
+        box = np.array([piece.min(axis=0), piece.max(axis=0)])
+        earlier = [e for e in earlier if np.all(e.box[0] <= box[1]) and np.all(box[0] <= e.box[1])]
+        made = next((p for e in earlier if (p := _reused(e, piece, tolerance_m=tolerance_m)) is not None), None)
+        if made is None:
+            ellipse, support = fit(piece)
+            excess, worst = _excess_over_points(ellipse, cKDTree(piece), tolerance_m=tolerance_m)
+            made = Piece(points=piece, ellipse=ellipse, excess_m=excess,
+                         support=None if support is None else piece[support], worst=worst)
+        made.box = box
+        compared[id(made)] = earlier
+        return made
+
+    return _cover(z, make=make, split=_split_points, tolerance_m=tolerance_m, max_pieces=max_pieces)
+
+
+def _keys(points: FloatArray) -> NDArray[np.complex128]:
+    """Points as complex numbers (exact), so that set membership is one `np.isin`."""
+    return points[:, 0] + 1j * points[:, 1]
+
+
+def _reused(earlier: Piece, points: FloatArray, *, tolerance_m: float) -> Piece | None:
+    """A piece of `points` with `earlier`'s ellipse, if that is their MVEE (see `point_cover`); else None.
+
+    The support must also be no thinner than the fit's degenerate width: the MVEE E of a support S
+    has E/2 ⊆ hull(S) about its centre (John), so a set holding S is at least E's minor semi-axis
+    wide in every direction, and a fresh fit would not fatten it.
+    """
+    if len(points) == len(earlier.points) and np.array_equal(points, earlier.points):
+        return Piece(points=points, ellipse=earlier.ellipse, excess_m=earlier.excess_m, support=earlier.support,
+                     worst=earlier.worst)
+    if earlier.support is None or earlier.ellipse.semi_axes[1] < _DEGENERATE_M:
+        return None
+    here = _keys(points)
+    if not np.all(np.isin(_keys(earlier.support), here)) or np.max(earlier.ellipse.level(points)) > 1.0:
+        return None
+    before = _keys(earlier.points)
+    added = points[~np.isin(here, before)]
+    if np.all(np.isin(before, here)) and (
+            len(added) == 0 or np.min(np.linalg.norm(added - earlier.worst, axis=1)) >= earlier.excess_m):
+        excess, worst = earlier.excess_m, earlier.worst
+    else:
+        excess, worst = _excess_over_points(earlier.ellipse, cKDTree(points), tolerance_m=tolerance_m)
+    return Piece(points=points, ellipse=earlier.ellipse, excess_m=excess, support=earlier.support, worst=worst)

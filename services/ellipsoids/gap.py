@@ -26,7 +26,7 @@ from scipy.sparse.csgraph import connected_components
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
 
-__all__ = ["Gap", "GapError", "ellipse_gap", "group_ellipses"]
+__all__ = ["Gap", "GapError", "ellipse_gap", "gap_samples", "group_ellipses"]
 
 
 class GapError(RuntimeError):
@@ -114,11 +114,17 @@ def ellipse_gap(e1: Ellipse, e2: Ellipse, *, method: str = "clarabel", solver: s
 _BOUNDARY_SAMPLES = 32  # closest sampled points bound the gap from above
 
 
+def gap_samples(ellipse: Ellipse) -> FloatArray:
+    """The boundary points `group_ellipses` bounds gaps with (a caller may keep them per ellipse)."""
+    return ellipse.boundary(_BOUNDARY_SAMPLES)
+
+
 def group_ellipses(
     ellipses: list[Ellipse],
     *,
     min_gap_m: float,
     connected: np.ndarray | None = None,
+    samples: list[FloatArray] | None = None,
     method: str = "clarabel",
 ) -> np.ndarray:
     """Group labels: ellipses closer than `min_gap_m` (= 2 r, the robot cannot pass) share a group.
@@ -128,7 +134,8 @@ def group_ellipses(
     are examined. Certain bounds settle almost every pair without a solve: the bounding circles'
     distance (centre, largest semi-axis) is a lower bound on the gap, the closest pair of sampled
     boundary points an upper bound. Only the pairs the bounds leave open get the SOCP of eq. (3), and
-    a pair of components already joined is not examined again.
+    a pair of components already joined is not examined again. `samples` are the ellipses'
+    `gap_samples` if the caller keeps them (computed here otherwise).
     """
     m = len(ellipses)
     if m == 0:
@@ -140,7 +147,7 @@ def group_ellipses(
     lower = np.linalg.norm(centres[i] - centres[j], axis=1) - radii[i] - radii[j]
     open_pair = (lower < min_gap_m) & (connected[i] != connected[j])
     i, j = i[open_pair], j[open_pair]
-    boundary = np.stack([e.boundary(_BOUNDARY_SAMPLES) for e in ellipses])
+    boundary = np.stack(samples if samples is not None else [gap_samples(e) for e in ellipses])
     upper = np.array(
         [np.min(np.linalg.norm(boundary[a][:, None, :] - boundary[b][None, :, :], axis=2)) for a, b in zip(i, j)]
     ).reshape(-1)

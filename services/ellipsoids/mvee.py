@@ -31,12 +31,14 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull
 
 from cvxnav.geometry import Ellipse, FloatArray
 
-__all__ = ["FitError", "mvee", "mvee_fast"]
+IntArray = NDArray[np.intp]
+
+__all__ = ["FitError", "mvee", "mvee_fast", "mvee_fast_support"]
 
 _ACCEPTED_STATUSES = ("optimal", "optimal_inaccurate")  # cvxpy's status strings
 # A solver answer whose worst point sits further out than this is a failed solve, not rounding.
@@ -61,10 +63,11 @@ def _as_points(points: ArrayLike) -> FloatArray:
     return z
 
 
-def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatArray, FloatArray, IntArray | None]:
     """Hull vertices of the (possibly fattened) set, in whitened coordinates.
 
-    Returns (vertices_normalised, shift, transform) with x = shift + transform · x_normalised.
+    Returns (vertices_normalised, shift, transform, index) with x = shift + transform · x_normalised
+    and `index` the vertices' rows of `z` (None when the set was fattened: its vertices are not in `z`).
     The set is degenerate when its spread across its principal axis is below `eps_m` (collinear,
     duplicate or single points); it is then replaced by its two extreme points along the principal
     axis ⊕ {±eps v₁, ±eps v₂}, v the principal axes, a set that contains the original points (a cross
@@ -76,7 +79,8 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     centred = z - shift
     _, sv, vt = np.linalg.svd(centred, full_matrices=False) if len(z) > 1 else (None, np.zeros(1), np.eye(2))
     across = centred @ vt[-1]
-    if len(sv) < 2 or np.ptp(across) < eps_m:
+    degenerate = len(sv) < 2 or np.ptp(across) < eps_m
+    if degenerate:
         along = centred @ vt[0]
         ends = centred[[int(np.argmin(along)), int(np.argmax(along))]]
         cross = eps_m * np.array([vt[0], -vt[0], vt[1], -vt[1]])
@@ -88,7 +92,7 @@ def _support_points(z: FloatArray, *, eps_m: float) -> tuple[FloatArray, FloatAr
     transform = vt.T * spread  # columns: principal axes scaled by their spread
     unit = (centred @ vt.T) / spread
     hull = ConvexHull(unit)
-    return unit[hull.vertices], shift, transform
+    return unit[hull.vertices], shift, transform, None if degenerate else hull.vertices
 
 
 def _ellipse(
@@ -145,7 +149,7 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
     the cached problems are shared.
     """
     z = _as_points(points)
-    vertices, shift, transform = _support_points(z, eps_m=eps_m)
+    vertices, shift, transform, _ = _support_points(z, eps_m=eps_m)
     size = _bucket(len(vertices))
     padded = np.vstack([vertices, np.repeat(vertices[:1], size - len(vertices), axis=0)])
     problem, param, A, b = _mvee_problem(size)
@@ -243,16 +247,27 @@ def _newton_polish(Q: FloatArray, u: FloatArray, *, tol: float, max_iter: int = 
 
 
 def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_iter: int = 100_000) -> Ellipse:
-    """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy.
+    """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy (`mvee_fast_support` without the support)."""
+    return mvee_fast_support(points, tol=tol, eps_m=eps_m, max_iter=max_iter)[0]
+
+
+def mvee_fast_support(
+    points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_iter: int = 100_000
+) -> tuple[Ellipse, IntArray | None]:
+    """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy, and its support.
 
     Newton on the support from the Kumar–Yildirim start (Kumar & Yildirim 2005: the extreme points
     along each axis; in whitened coordinates most of the support, so no Todd–Yildirim warm-up is
     needed), Todd–Yildirim steps to bring in violators, then the full Todd–Yildirim check: on return max Mᵢ ≤ 3 (1 + tol), which bounds the area above the optimum by a
     factor (1 + tol) (Khachiyan's bound), and the ellipse is scaled to contain every point. From the
     optimal weights u: centre c = Σ uᵢ xᵢ, shape E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
+
+    The support is the rows of `points` that carry weight (uᵢ > 0); None for a degenerate set, whose
+    ellipse is fitted to fattened points. The weights depend on the support alone, so they are the
+    same answer for any set that holds the support and lies in the ellipse (what the covers reuse).
     """
     z = _as_points(points)
-    vertices, shift, transform = _support_points(z, eps_m=eps_m)
+    vertices, shift, transform, index = _support_points(z, eps_m=eps_m)
     Q = np.vstack([vertices.T, np.ones(len(vertices))])
     # Kumar–Yildirim start: the extreme points along both (whitened) axes, usually most of the support.
     u = np.zeros(len(vertices))
@@ -277,4 +292,5 @@ def mvee_fast(points: ArrayLike, *, tol: float = 1e-9, eps_m: float = 1e-3, max_
     if w[0] <= 0.0:
         raise FitError("MVEE weights collapsed onto a degenerate support")
     A_unit = R @ np.diag(1.0 / np.sqrt(2.0 * w)) @ R.T
-    return _ellipse(A_unit, -A_unit @ c, shift=shift, transform=transform, z=z, max_violation=max(1e-3, 10.0 * tol))
+    ellipse = _ellipse(A_unit, -A_unit @ c, shift=shift, transform=transform, z=z, max_violation=max(1e-3, 10.0 * tol))
+    return ellipse, None if index is None else index[u > 0.0]

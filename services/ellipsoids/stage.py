@@ -5,7 +5,9 @@ narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), 
 grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
 
 Fits, and the grown ellipses, are cached by cluster content: the sensing stage sends unchanged clusters byte-identical, and
-most of the map is unchanged from one scan to the next, so only new or grown clusters are refitted.
+most of the map is unchanged from one scan to the next, so only new or grown clusters are refitted. A grown cluster's
+cover reuses the previous message's split trees where that is exact (`point_cover`), and an ellipse kept that way keeps
+its grown ellipse and its gap samples too.
 
 A Clusters message holds at most as many points as the sensing stage remembers, all within the
 sensor's reach of the map (``services.limits``). Degenerate clusters (one point, all points equal,
@@ -26,8 +28,8 @@ from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Clusters, Ellipsoids
 from schemas.scenario import Scenario
 from services.convert import answer_header, ellipse_to_msg
-from services.ellipsoids.cover import cover_points
-from services.ellipsoids.gap import group_ellipses
+from services.ellipsoids.cover import Piece, point_cover
+from services.ellipsoids.gap import gap_samples, group_ellipses
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
 
 
@@ -50,28 +52,50 @@ class EllipsoidsConfig:
         return cls(inflation_m=scenario.inflation_m, reach=Reach.of(scenario))
 
 
+@dataclass(frozen=True)
+class _Fitted:
+    """One ellipse of a cluster's cover, grown, and the samples grouping bounds its gaps with."""
+
+    ellipse: Ellipse
+    grown: Ellipse
+    samples: np.ndarray
+
+
 class EllipsoidsStage:
     def __init__(self, *, config: EllipsoidsConfig) -> None:
         self.config = config
-        self._fits: OrderedDict[bytes, list[tuple[Ellipse, Ellipse]]] = OrderedDict()  # (fitted, grown) pieces
+        self._fits: OrderedDict[bytes, list[_Fitted]] = OrderedDict()
+        # The previous message's clusters: their split trees (by content) and their ellipses (by identity).
+        self._trees: dict[bytes, Piece] = {}
+        self._fitted: dict[int, _Fitted] = {}
         self._seq = 0
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsStage:
         return cls(config=EllipsoidsConfig.from_scenario(scenario))
 
-    def _cover(self, points: np.ndarray) -> list[tuple[Ellipse, Ellipse]]:
-        """The cluster's cover, each piece with its grown ellipse (both cached by the points' content)."""
+    def _cover(self, points: np.ndarray, *, trees: dict[bytes, Piece]) -> list[_Fitted]:
+        """The cluster's cover (cached by the points' content); its split tree goes into `trees`."""
         digest = hashlib.blake2b(points.tobytes(), digest_size=16).digest()
         if digest in self._fits:
             self._fits.move_to_end(digest)
+            if digest in self._trees:
+                trees[digest] = self._trees[digest]
             return self._fits[digest]
-        fitted = [(piece, piece.grown(self.config.inflation_m)) for piece in
-                  cover_points(points, tolerance_m=self.config.tolerance_m, max_pieces=self.config.max_pieces)]
+        cover = point_cover(points, previous=list(self._trees.values()), tolerance_m=self.config.tolerance_m,
+                            max_pieces=self.config.max_pieces)
+        trees[digest] = cover.root
+        fitted = [self._fit(piece.ellipse) for piece in cover.pieces]
         self._fits[digest] = fitted
         while len(self._fits) > self.config.cache_size:
             self._fits.popitem(last=False)
         return fitted
+
+    def _fit(self, ellipse: Ellipse) -> _Fitted:
+        known = self._fitted.get(id(ellipse))
+        if known is not None and known.ellipse is ellipse:
+            return known
+        return _Fitted(ellipse=ellipse, grown=ellipse.grown(self.config.inflation_m), samples=gap_samples(ellipse))
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if not isinstance(message, Clusters):
@@ -85,25 +109,27 @@ class EllipsoidsStage:
             points = np.asarray(cluster.points, dtype=float).reshape(-1, 2)
             self.config.reach.check_points(points, what=f"cluster {cluster.cluster_id}")
             clouds.append((cluster.cluster_id, points))
-        raw: list[Ellipse] = []
-        grown: list[Ellipse] = []
+        fitted: list[_Fitted] = []
         cluster_ids: list[int] = []
+        trees: dict[bytes, Piece] = {}
         for cluster_id, points in clouds:
-            for piece, piece_grown in self._cover(points):
-                raw.append(piece)
-                grown.append(piece_grown)
-                cluster_ids.append(cluster_id)
+            cover = self._cover(points, trees=trees)
+            fitted.extend(cover)
+            cluster_ids.extend([cluster_id] * len(cover))
+        self._trees = trees
+        self._fitted = {id(f.ellipse): f for f in fitted}
         # A cluster is one obstacle, so its pieces share a group from the start (the default sensing
         # links points closer than r, so adjacent pieces are closer than the passage 2 r anyway); only
         # pairs across clusters are examined.
-        labels = group_ellipses(raw, min_gap_m=self.config.min_gap_m, connected=np.array(cluster_ids, dtype=int))
+        labels = group_ellipses([f.ellipse for f in fitted], min_gap_m=self.config.min_gap_m,
+                                connected=np.array(cluster_ids, dtype=int), samples=[f.samples for f in fitted])
         out = Ellipsoids(
             header=answer_header(scan_header=message.header, seq=self._seq),
             scan_seq=message.scan_seq,
             inflation_m=self.config.inflation_m,
             ellipsoids=[
-                ellipse_to_msg(ellipse, group=int(label), cluster_id=cid)
-                for ellipse, label, cid in zip(grown, labels, cluster_ids)
+                ellipse_to_msg(f.grown, group=int(label), cluster_id=cid)
+                for f, label, cid in zip(fitted, labels, cluster_ids)
             ],
         )
         self._seq += 1

@@ -13,6 +13,7 @@ from services.ellipsoids.cover import (
     cover_polygon,
     excess_over_points,
     excess_over_polygon,
+    point_cover,
 )
 from services.ellipsoids.mvee import mvee, mvee_fast
 
@@ -103,3 +104,42 @@ def test_excess_over_points_prunes_samples_but_not_the_maximum(shape):
     for part in (points, points[: len(points) // 3], points[::7]):
         e = mvee_fast(part)
         assert excess_over_points(e, part, tolerance_m=0.1) == _excess_over_every_sample(e, part, tolerance_m=0.1)
+
+
+def _revealed_obstacle():
+    """A round obstacle with a straight wall, sensed as a car passes: 5 cm voxels, revealed in order."""
+    rng = np.random.default_rng(11)
+    arc = np.linspace(np.pi, 0.0, 120)
+    round_side = np.column_stack([3.0 + 1.5 * np.cos(arc), 1.5 * np.sin(arc)]) + rng.normal(0.0, 0.004, (120, 2))
+    wall = np.column_stack([np.arange(4.55, 9.0, 0.05), np.zeros(89)])
+    return np.vstack([round_side, wall])
+
+
+def _lexsorted(points):
+    return points[np.lexsort((points[:, 1], points[:, 0]))]  # as the sensing stage sends a cluster
+
+
+def test_reused_fits_give_the_fresh_cover_of_a_growing_cluster():
+    """Each scan adds 1-10 points; the cover built on the previous scan's tree is the fresh one."""
+    obstacle = _revealed_obstacle()
+    rng = np.random.default_rng(5)
+    seen, previous, reused = 40, [], 0
+    while seen < len(obstacle):
+        points = _lexsorted(obstacle[:seen])
+        cover = point_cover(points, previous=previous, tolerance_m=0.1, max_pieces=32)
+        fresh = cover_points(points, tolerance_m=0.1, max_pieces=32)
+        assert len(cover.pieces) == len(fresh)
+        for piece, e in zip(cover.pieces, fresh):
+            np.testing.assert_allclose(piece.ellipse.A, e.A, rtol=1e-9, atol=1e-9 * np.abs(e.A).max())
+            np.testing.assert_allclose(piece.ellipse.center, e.center, rtol=0.0, atol=1e-9 * e.semi_axes[0])
+            assert piece.excess_m == excess_over_points(piece.ellipse, piece.points, tolerance_m=0.1)
+            assert np.all(piece.ellipse.level(piece.points) <= 1.0 + 1e-12)
+        earlier = {id(p.ellipse) for root in previous for p in _nodes(root)}
+        reused += sum(id(p.ellipse) in earlier for p in _nodes(cover.root))
+        previous = [cover.root]
+        seen += int(rng.integers(1, 11))
+    assert reused > 0  # the reuse path was taken, not only fresh fits
+
+
+def _nodes(root):
+    return [root] + [node for child in root.children for node in _nodes(child)]
