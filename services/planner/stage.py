@@ -42,7 +42,7 @@ from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
 from services.limits import Reach
 from services.planner.core import PathPlan, intersected, plan_until_verified
 from services.planner.refine import RefineSettings, SolverFailure, refine
-from services.smoother.core import smooth
+from services.smoother.core import Smoothed, smooth
 
 logger = logging.getLogger(__name__)
 
@@ -293,6 +293,13 @@ class PlannerStage:
         self._seq += 1
         return [("raw_path", out)]
 
+    def _smooth(self, points: FloatArray, *, goals: FloatArray, ellipses: list[Ellipse]) -> Smoothed:
+        """The curve the smoother downstream will make of `points`, verified as it will verify it."""
+        config = self.config
+        return smooth(points, ellipses=ellipses, max_curvature=config.max_curvature, heading_rad=None, goals=goals,
+                      goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
+                      bounds_max=config.bounds_max)
+
     def _repair(
         self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
     ) -> FloatArray | None:
@@ -333,10 +340,7 @@ class PlannerStage:
                 continue
             if len(intersected(refined.points, ellipses)) or polyline_length(refined.points) > longest_m:
                 continue
-            checked = smooth(refined.points, ellipses=ellipses, max_curvature=config.max_curvature, heading_rad=None,
-                             goals=goals, goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
-                             bounds_max=config.bounds_max)
-            if checked.verification.ok:
+            if self._smooth(refined.points, goals=goals, ellipses=ellipses).verification.ok:
                 return refined.points
         return None
 
@@ -358,10 +362,7 @@ class PlannerStage:
         while True:
             candidate = self.plan[max(0, cut - back):]
             if len(candidate) >= 4:
-                checked = smooth(candidate, ellipses=ellipses, max_curvature=config.max_curvature,
-                                 heading_rad=None, goals=goals, goal_tolerance_m=config.goal_tolerance_m,
-                                 bounds_min=config.bounds_min, bounds_max=config.bounds_max)
-                if checked.verification.ok:
+                if self._smooth(candidate, goals=goals, ellipses=ellipses).verification.ok:
                     return candidate
             if cut - back <= 0:
                 return None
@@ -392,10 +393,7 @@ class PlannerStage:
                 start=position, heading_rad=heading_rad, goals=goals, ellipses=used,
                 bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
                 settings=config.refine, repairs=repairs,
-                smooth_fn=lambda points, used=used: smooth(
-                    points, ellipses=used, max_curvature=config.max_curvature, heading_rad=None, goals=goals,
-                    goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
-                    bounds_max=config.bounds_max),
+                smooth_fn=lambda points, used=used: self._smooth(points, goals=goals, ellipses=used),
             )
             if smoothed is not None and smoothed.verification.ok:
                 if relief:
