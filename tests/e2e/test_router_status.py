@@ -39,6 +39,13 @@ def _open_when_up(endpoint: str, *, timeout_s: float = 30.0) -> zenoh.Session:
             time.sleep(0.2)
 
 
+def _wait_alive(session: zenoh.Session, stages: set[str], *, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while stages - alive_stages(session, prefix=default_prefix()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert stages <= alive_stages(session, prefix=default_prefix())
+
+
 def test_run_through_the_router_with_status(tmp_path):
     (port,) = free_ports(1)
     router_ep = f"tcp/127.0.0.1:{port}"
@@ -48,14 +55,11 @@ def test_run_through_the_router_with_status(tmp_path):
         processes += [_start(["service", name, "--connect", router_ep], log=tmp_path / f"{name}.log")
                       for name in PIPELINE]
         with _open_when_up(router_ep) as session:
-            deadline = time.monotonic() + 60.0
-            while set(PIPELINE) - alive_stages(session, prefix=default_prefix()) and time.monotonic() < deadline:
-                time.sleep(0.2)
-            assert set(PIPELINE) <= alive_stages(session, prefix=default_prefix())
-        sim = _start(["service", "sim", "--connect", router_ep, "--out", str(tmp_path / "run.json")],
-                     log=tmp_path / "sim.log")
-        processes.append(sim)
-        time.sleep(5.0)  # the sim imports, waits for the stages' tokens, then drives
+            _wait_alive(session, set(PIPELINE))
+            sim = _start(["service", "sim", "--connect", router_ep, "--out", str(tmp_path / "run.json")],
+                         log=tmp_path / "sim.log")
+            processes.append(sim)
+            _wait_alive(session, {"sim"})  # the sim imports, then drives: status looks while it does
         status = subprocess.run([sys.executable, "-m", "cvxnav", "status", "--connect", router_ep, "--mode", "client",
                                  "--window-s", "1.5", "--json"], capture_output=True, text=True, timeout=60)
         assert status.returncode == 0, status.stderr
