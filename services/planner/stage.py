@@ -147,12 +147,10 @@ def boxed_in(stack: EllipseStack, *, start: FloatArray, heading_rad: float, max_
     if len(stack) == 0:
         return False
     s = np.arange(1, 32) * (0.5 * np.pi / max_curvature / 31)  # arc length along each arc
-    curvature = np.linspace(-max_curvature, max_curvature, 9)[:, None]
-    turned = heading_rad + curvature * s
-    safe = np.where(np.abs(curvature) > 1e-9, curvature, 1.0)
-    sin_term = np.where(np.abs(curvature) > 1e-9, (np.sin(turned) - np.sin(heading_rad)) / safe, s * np.cos(heading_rad))
-    cos_term = np.where(np.abs(curvature) > 1e-9, (np.cos(heading_rad) - np.cos(turned)) / safe, s * np.sin(heading_rad))
-    arcs = np.stack([start[0] + sin_term, start[1] + cos_term], axis=-1)  # (9, 31, 2)
+    half = 0.5 * np.linspace(-max_curvature, max_curvature, 9)[:, None] * s  # half the turn so far
+    # The chord of an arc of length s and curvature k: 2 sin(ks/2)/k = s sinc, along heading + ks/2.
+    chord = s * np.sinc(half / np.pi)
+    arcs = start + chord[..., None] * np.stack([np.cos(heading_rad + half), np.sin(heading_rad + half)], axis=-1)
     levels = stack.levels(arcs.reshape(-1, 2)).min(axis=1).reshape(arcs.shape[:2])
     return bool(np.all(levels.min(axis=1) < 1.0))
 
@@ -249,12 +247,13 @@ class PlannerStage:
         ellipses = scaled(sensed, free)
         relief = np.minimum(free, relieved_scales(stack, start=position, within_m=1.0 / config.max_curvature,
                                                   inflation_m=config.inflation_m, keep_out_m=config.keep_out_m))
+        relieved = scaled(sensed, relief) if np.any(relief < free) else None
 
         # Plan, check and publish against the same ellipses: the smoother verifies against these.
         used = ellipses
         points: FloatArray | None = None
         if self.plan is not None and self.plan_goal_base == goal_base:
-            used = scaled(sensed, relief) if self.plan_relieved else ellipses
+            used = relieved if self.plan_relieved and relieved is not None else ellipses
             points = self._still_valid(position=position, goals=goals, ellipses=used)
         status, reason = "ok", ""
         if points is None and self.plan is not None and self.plan_goal_base == goal_base:
@@ -264,12 +263,11 @@ class PlannerStage:
                 self.plan = points
                 self._save()
         if points is None:
-            plan, used, relieved = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
-                                                ellipses=ellipses,
-                                                relieved=scaled(sensed, relief) if np.any(relief < free) else None)
+            plan, used, relief_used = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
+                                                   ellipses=ellipses, relieved=relieved)
             self.plan_id += 1
             if plan.status == "ok":
-                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relieved
+                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relief_used
                 points = plan.points
             else:
                 logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
