@@ -16,7 +16,9 @@ sticks out of a newly seen obstacle): the planner shrinks any ellipse the start 
 leave it at level 1.02 (`free_start_scales`), so its path may run no deeper than level(start) / 1.02,
 and the guard allows down to level(start) / (1 + START_SLACK) where that is deeper than the floor;
 with START_SLACK above the planner's 0.02 it never rejects a path the planner verified, and still
-rejects one that goes deeper towards an obstacle than the robot already is. LEVEL_TOL absorbs the chords between the smoothed curve's samples (0.05 m apart: they stray from the
+rejects one that goes deeper towards an obstacle than the robot already is.
+
+LEVEL_TOL absorbs the chords between the smoothed curve's samples (0.05 m apart: they stray from the
 curve by κ s² / 8 ≈ 1e-4 m, below 2e-4 in level for the paper's car).
 """
 

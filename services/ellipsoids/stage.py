@@ -4,10 +4,11 @@ Each cluster is covered by a few tight ellipses (`cover_points`), the ellipses w
 narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every ellipse is
 grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
 
-Fits, and the grown ellipses, are cached by cluster content: the sensing stage sends unchanged clusters byte-identical, and
-most of the map is unchanged from one scan to the next, so only new or grown clusters are refitted. A grown cluster's
-cover reuses the previous message's split trees where that is exact (`point_cover`), and an ellipse kept that way keeps
-its grown ellipse and its gap samples too.
+Fits, and the grown ellipses, are cached by cluster content: the sensing stage sends unchanged
+clusters byte-identical, and most of the map is unchanged from one scan to the next, so only new or
+grown clusters are refitted. A grown cluster's cover reuses the previous message's split trees where
+that is exact (`point_cover`), and an ellipse kept that way keeps its grown ellipse and its gap
+samples too.
 
 A Clusters message holds at most as many points as the sensing stage remembers, all within the
 sensor's reach of the map (``services.limits``). Degenerate clusters (one point, all points equal,
