@@ -122,5 +122,9 @@ def test_a_plan_that_a_grown_cover_invalidates_is_repaired_on_the_same_side_of_i
     assert second.status == "ok" and second.plan_id == first.plan_id + 1
     assert np.min(np.linalg.norm(after - centre, axis=1)) >= grown
     assert passes(after) == passes(before)
+    # Only the stretch near the cover, and a rejoin distance past it, moved: from the first goal on
+    # the repaired plan is the kept one, point for point.
+    kept = before[np.argmin(np.linalg.norm(before - goal, axis=1)):]
+    np.testing.assert_array_equal(after[-len(kept):], kept)
     (_, curve), = SmootherStage.from_scenario(SCENARIO).process(topic="raw_path", message=second, now_s=0.0)
     assert curve.status == "ok"
