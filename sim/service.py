@@ -43,7 +43,15 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageInputError, decode_sample, one_line
+from cvxnav.runtime import (
+    DEFAULT_MAX_PAYLOAD_BYTES,
+    STOP_CHECK_S,
+    Inbox,
+    Ring,
+    StageInputError,
+    decode_sample,
+    one_line,
+)
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import (
     DecodeError,
@@ -312,13 +320,15 @@ class _Answers:
     ellipsoid stage's newest grown ellipses and the pipeline stages' liveliness changes; and where it
     says why it would not drive on a path."""
 
-    paths: zenoh.Subscriber
-    statuses: zenoh.Subscriber
+    inbox: Inbox  # wakes the sim when any of the rings below receives
+    paths_key: str
+    paths: Ring
+    statuses: Ring
     status_pub: zenoh.Publisher  # the sim's own status
     max_payload_bytes: int
     reach: Reach
-    ellipsoids: zenoh.Subscriber
-    alive: zenoh.Subscriber
+    ellipsoids: Ring
+    alive: Ring
     published_at: dict[int, float] = field(default_factory=dict)  # scan seq -> perf_counter
     stamps: dict[int, float] = field(default_factory=dict)  # scan seq -> sim stamp
     latencies_ms: list[float] = field(default_factory=list)
@@ -409,7 +419,7 @@ class _Answers:
         reason = core.accept(answer)
         if reason is None:
             return
-        self._report(str(self.paths.key_expr), f"plan {answer.plan_id} for scan {answer.scan_seq} not driven: {reason}")
+        self._report(self.paths_key, f"plan {answer.plan_id} for scan {answer.scan_seq} not driven: {reason}")
 
 
 def wait_for_stages(session: zenoh.Session, *, prefix: str, stages: tuple[str, ...], timeout_s: float,
@@ -454,15 +464,20 @@ def run_sim(
         state_pub = session.declare_publisher(key(prefix, "state"),
                                               encoding=zenoh.Encoding(RobotState.encoding()),
                                               congestion_control=block)
+        inbox = Inbox()
+        rings = {name: inbox.ring(_ANSWER_RING) for name in ("paths", "statuses", "ellipsoids", "alive")}
+        session.declare_subscriber(key(prefix, "smooth_path"), rings["paths"])
+        session.declare_subscriber(status_key(prefix, "*"), rings["statuses"])
+        session.declare_subscriber(key(prefix, "ellipsoids"), rings["ellipsoids"])
+        session.liveliness().declare_subscriber(alive_key(prefix, "*"), rings["alive"], history=True)
         answers = _Answers(
-            paths=session.declare_subscriber(key(prefix, "smooth_path")),
-            statuses=session.declare_subscriber(status_key(prefix, "*")),
+            inbox=inbox,
+            paths_key=key(prefix, "smooth_path"),
             status_pub=session.declare_publisher(status_key(prefix, "sim"),
                                                  encoding=zenoh.Encoding(StageStatus.encoding())),
             max_payload_bytes=config.max_payload_bytes,
             reach=Reach.of(scenario),
-            ellipsoids=session.declare_subscriber(key(prefix, "ellipsoids")),
-            alive=session.liveliness().declare_subscriber(alive_key(prefix, "*"), history=True),
+            **rings,
         )
         token = session.liveliness().declare_token(alive_key(prefix, "sim"))
         world_queryable = _publish_world(session, scenario=scenario, prefix=prefix)
@@ -498,6 +513,8 @@ def run_sim(
 
 # A stage that came back this recently may have missed the scan: re-send it if no answer came in a second.
 _REJOIN_RESEND_S = 5.0
+# Samples the sim holds per subscription between drains (paths, statuses, ellipsoids, liveliness).
+_ANSWER_RING = 256
 
 
 def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event,
@@ -530,7 +547,7 @@ def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
             if (seq == 0 or rejoined) and time.monotonic() >= resend_at:
                 publish_tick()  # routes to fresh (or restarted) peers may not have been up for this scan
                 resend_at = time.monotonic() + 1.0
-            time.sleep(0.0005)
+            answers.inbox.wait(min(deadline, resend_at, time.monotonic() + STOP_CHECK_S) - time.monotonic())
         answers.rejected.clear()
         stalled = bool(core.missing)
         if not answered and not stalled and not stop_event.is_set():
@@ -546,7 +563,7 @@ def _await_ellipsoids(*, core: SimCore, answers: _Answers, seq: int, deadline: f
     """Lockstep: the ellipses of scan `seq` come straight from their stage, the path two stages later;
     wait (briefly) for them so the path is checked against the same obstacles in every run."""
     while core.guard.scan_seq < seq and time.monotonic() < deadline:
-        time.sleep(0.0005)
+        answers.inbox.wait(min(deadline - time.monotonic(), STOP_CHECK_S))
         answers.watch(core)
 
 
