@@ -22,6 +22,7 @@ per scan, per cluster set, per path; ellipses per set; coordinates within the sc
 
 from __future__ import annotations
 
+import gc
 import logging
 import signal
 import threading
@@ -239,6 +240,19 @@ class _Shell:
         self._status_publisher.put(status.model_dump_json())
 
 
+def freeze_startup_objects() -> None:
+    """Exempt every object alive now (modules, compiled problems, caches) from garbage collection.
+
+    The collector's full passes traverse every tracked object, and the libraries a stage imports
+    hold hundreds of thousands of them: on field-25 each pass stalled the stage it hit by up to 33 ms
+    (the smoother's p99 went 38 → 8 ms once they were frozen). What a stage allocates per message is
+    freed by reference counting, so the passes that remain are short. Called once, by the process's
+    main loop, when start-up is done.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 def run_stage(
     *,
     stage: str,
@@ -283,6 +297,7 @@ def run_stage(
             clock=clock,
         )
         logger.info("stage %s running under %s", stage, prefix)
+        freeze_startup_objects()
         if ready_event is not None:
             ready_event.set()
         next_tick_s = time.monotonic()

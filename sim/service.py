@@ -50,6 +50,7 @@ from cvxnav.runtime import (
     Ring,
     StageInputError,
     decode_sample,
+    freeze_startup_objects,
     one_line,
 )
 from schemas.files import LatencyStats, RunFile
@@ -487,6 +488,7 @@ def run_sim(
             logger.warning("stages not alive after %.0f s: %s", stage_wait_s, ", ".join(sorted(missing)))
         for stage in missing:
             core.stage_lost(stage)
+        freeze_startup_objects()
 
         def publish_tick() -> None:
             state, scan = core.sense()

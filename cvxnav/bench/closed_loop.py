@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from cvxnav.run import DEFAULT_FACTORIES, PIPELINE, load_factory
-from cvxnav.runtime import StageInputError
+from cvxnav.runtime import StageInputError, freeze_startup_objects
 from schemas.messages import Ellipsoids, SmoothPath
 from schemas.scenario import Scenario
 from sim.service import SimCore
@@ -69,6 +69,7 @@ def run_closed_loop(scenario: Scenario, *, reference_m: float | None = None,
     """Drive `scenario` to its outcome with the default stage cores; `on_step(sim_s)` after each scan."""
     core = SimCore(scenario)
     stages = {name: load_factory(DEFAULT_FACTORIES[name])(scenario) for name in STAGE_ORDER}
+    freeze_startup_objects()  # as every stage process does before its first message
     samples: dict[str, list[float]] = {name: [] for name in (*STAGE_ORDER, "total")}
     started = time.perf_counter()
     while core.outcome is None:
