@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import shapely
 from pydantic import BaseModel
 
 from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
@@ -162,6 +163,20 @@ def boxed_in(stack: EllipseStack, *, start: FloatArray, heading_rad: float, max_
     return bool(np.all(levels.min(axis=1) < 1.0))
 
 
+def crosses_closed_gap(
+    path: FloatArray, ellipses: list[Ellipse], *, entered: FloatArray, groups: FloatArray, clusters: FloatArray
+) -> bool:
+    """Whether `path` passes between an ellipse in `entered` and another of its group from another
+    cluster: through a gap the ellipsoid stage found narrower than the robot's passage (eq. 3), which
+    no change of margin opens. Tested cheaply, as the path crossing the segment between their centres.
+    """
+    pairs = [(i, j) for i in entered for j in np.flatnonzero((groups == groups[i]) & (clusters != clusters[i]))]
+    if not pairs:
+        return False
+    centers = np.array([e.center for e in ellipses])
+    return bool(np.any(shapely.intersects(shapely.LineString(path), shapely.linestrings(centers[np.array(pairs)]))))
+
+
 def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
     """Each ellipse scaled about its centre by its factor (level ÷ scale)."""
     out = []
@@ -265,7 +280,9 @@ class PlannerStage:
             points = self._still_valid(position=position, goals=goals, ellipses=used)
         status, reason = "ok", ""
         if points is None and self.plan is not None and self.plan_goal_base == goal_base:
-            repaired = self._repair(position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=used)
+            repaired = self._repair(position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=used,
+                                    groups=np.array([e.group for e in message.ellipsoids]),
+                                    clusters=np.array([e.cluster_id for e in message.ellipsoids]))
             if repaired is not None:
                 points, self.plan_margin = repaired
                 self.plan_id += 1
@@ -314,7 +331,8 @@ class PlannerStage:
         return (config.refine.level, config.refine.curvature_factor), config.repairs[-1]
 
     def _repair(
-        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse]
+        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
+        groups: FloatArray, clusters: FloatArray,
     ) -> tuple[FloatArray, int] | None:
         """The current plan, no longer valid, re-optimised from the robot's pose as the first iterate of
         the refinement, and the margin it was made at; None unless that is a local change whose smoothed
@@ -326,7 +344,8 @@ class PlannerStage:
         every obstacle, which the route search chose globally; that choice is only kept while the
         repair lengthens the rest of the path by at most `repair_slack_m` — a longer detour re-opens
         it, and the stage replans from scratch. So does a plan that runs deep into an ellipse (it has
-        no side of it to keep) or a repair that still enters one (the way round is blocked).
+        no side of it to keep), or between two ellipses that are grouped (`crosses_closed_gap`), and a
+        repair that still enters one (the way round is blocked).
 
         Only the plan up to `repair_rejoin_m` past the last stretch the new ellipses invalidate is
         re-optimised; the rest is kept point for point (a solve costs about 0.08 ms per point). The
@@ -342,7 +361,8 @@ class PlannerStage:
             return None
         ahead = np.vstack([position, trimmed[1:]])
         levels = EllipseStack.of(ellipses).min_segment_levels(ahead[:-1], ahead[1:])
-        if np.min(levels) < _REPAIR_MIN_LEVEL:
+        if np.min(levels) < _REPAIR_MIN_LEVEL or crosses_closed_gap(
+                ahead, ellipses, entered=intersected(ahead, ellipses), groups=groups, clusters=clusters):
             return None
         ends, cut = [], 0
         for goal in goals:  # the plan's vertex at each goal, so that refine pins every goal it passes through

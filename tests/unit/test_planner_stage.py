@@ -13,7 +13,7 @@ from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario
 from services.convert import ellipse_to_msg, ellipses_from_msgs
 from services.planner.core import plan_until_verified
-from services.planner.stage import PlannerStage, boxed_in
+from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap
 from services.smoother.core import smooth
 from services.smoother.stage import SmootherStage
 from sim.guard import PathGuard
@@ -128,3 +128,18 @@ def test_a_plan_that_a_grown_cover_invalidates_is_repaired_on_the_same_side_of_i
     np.testing.assert_array_equal(after[-len(kept):], kept)
     (_, curve), = SmootherStage.from_scenario(SCENARIO).process(topic="raw_path", message=second, now_s=0.0)
     assert curve.status == "ok"
+
+
+def test_a_path_between_two_grouped_obstacles_crosses_a_closed_gap_but_one_round_them_does_not():
+    ellipses = [Ellipse.circle(center=(0.0, 1.0), radius=0.6), Ellipse.circle(center=(0.0, -1.0), radius=0.6)]
+    between = np.array([[-3.0, 0.0], [3.0, 0.0]])  # enters neither grown ellipse, but passes between them
+    around = np.array([[-3.0, 0.0], [-1.0, 2.5], [1.0, 2.5], [3.0, 0.0]])
+    entered = np.array([0])
+    grouped = dict(groups=np.array([0, 0]), clusters=np.array([0, 1]))
+    assert crosses_closed_gap(between, ellipses, entered=entered, **grouped)
+    assert not crosses_closed_gap(around, ellipses, entered=entered, **grouped)
+    # Not grouped (the gap is wide enough), or pieces of one cluster (a concave obstacle: its mouth may lie
+    # between them).
+    assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array([0, 1]), clusters=np.array([0, 1]))
+    assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array([0, 0]), clusters=np.array([0, 0]))
+    assert not crosses_closed_gap(between, ellipses, entered=np.array([], dtype=int), **grouped)
