@@ -6,14 +6,14 @@ table (``schemas.wiring.STAGES``), never from the core.
 
 Each input is received into a small ring (``Ring``, ``INPUT_RING`` samples): a stage that falls
 behind works on the newest sample that decodes, and the stale ones are dropped, so nothing queues
-without bound. The worker sleeps until a sample arrives (``Inbox``) rather than polling. Samples newer than that one which do not decode are reported, never processed:
-garbage on a key cannot push a real message out unless it outnumbers the ring. After every input
-the stage publishes a ``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason
-for an input it could not use (oversize, bad JSON, wrong schema, non-finite number, validation
-failure, ``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing
-else, so the last good outputs stand. The status carries the rejected input's stamp
-(``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never as the
-verdict on a real scan.
+without bound. The worker sleeps until a sample arrives (``Inbox``) rather than polling. Samples
+newer than that one which do not decode are reported, never processed: garbage on a key cannot push
+a real message out unless it outnumbers the ring. After every input the stage publishes a
+``StageStatus`` on ``<prefix>/status/<stage>``: ``error`` with a one-line reason for an input it
+could not use (oversize, bad JSON, wrong schema, non-finite number, validation failure,
+``StageInputError``, solver failure), ``ok`` otherwise. A rejected input publishes nothing else, so
+the last good outputs stand. The status carries the rejected input's stamp (``input_stamp_s``) only
+when the input decoded; garbage on a key is reported, but never as the verdict on a real scan.
 
 Bounds: a payload larger than ``max_payload_bytes`` (``cvxnav service --max-payload-bytes``, default
 1 MiB) is rejected before it is decoded; each core bounds what a decoded message may hold (points

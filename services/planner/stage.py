@@ -2,14 +2,16 @@
 
 It keeps the current plan and replans only when it must: when there is none, when a goal has been
 reached (the remaining goals changed), when the robot has drifted off it, or when the newest ellipsoids
-invalidate it (the paper's eq. 2 intersection check, `intersected`). Otherwise it re-publishes the
-current plan trimmed to start where the robot is, under the same `plan_id`.
+invalidate it (the paper's eq. 2 intersection check, `intersected`) and a local repair of it, which
+keeps its way round every obstacle, does not verify (`_repair`). Otherwise it re-publishes the current
+plan trimmed to start where the robot is, under the same `plan_id`.
 
 A replan starts at the robot's pose and heading and runs through the remaining goals. When the smoothed
 curve of a new plan would fail verification, the plan is re-optimised with wider margins (the same
 repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept. A car that
 newly grown covers have boxed in, with no turn left inside the full margin, plans with the margin
-within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it.
+within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it;
+boxed in even there, it gets `no_path` with that reason.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
@@ -74,8 +76,8 @@ class PlannerConfig:
     # car can no longer steer away. Online, plans keep a wider margin; and they bend to 0.9 of the
     # curvature bound, so the tracker has steering in reserve to correct an error on the tightest arc.
     # A refinement whose curvature is still unmet after a dozen solves does not verify: in the eight
-    # public closed loops every verified plan took 2-8, the unverified ones 9-25 (the cap halves what
-    # a car in a tight spot spends per replan on attempts that fail anyway).
+    # public closed loops every verified plan took 2-8, the unverified ones 9-25 (the cap took
+    # field-60's slowest scans, spent on attempts that fail anyway, from 2.2-3.1 to 1.4-2.4 s).
     refine: RefineSettings = field(
         default_factory=lambda: RefineSettings(level=1.1, curvature_factor=0.9, max_iterations=12))
     # (level, curvature_factor): wider margins first, for a smoothed curve that clips an ellipse; last
@@ -470,7 +472,8 @@ class PlannerStage:
                 fallback = (plan, used, relief)
         assert fallback is not None  # the full-margin option is always tried
         floor = relieved if relieved is not None else ellipses
-        if boxed_in(EllipseStack.of(floor), start=position, heading_rad=heading_rad, max_curvature=config.max_curvature):
+        if boxed_in(EllipseStack.of(floor), start=position, heading_rad=heading_rad,
+                    max_curvature=config.max_curvature):
             # Nothing verified, and every turn crosses even the hard floor: the car, which only drives
             # forwards, cannot leave. Say so, rather than publish a curve the smoother must reject.
             return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None

@@ -156,6 +156,7 @@ def test_a_path_between_two_grouped_obstacles_crosses_a_closed_gap_but_one_round
     assert not crosses_closed_gap(around, ellipses, entered=entered, **grouped)
     # Not grouped (the gap is wide enough), or pieces of one cluster (a concave obstacle: its mouth may lie
     # between them).
-    assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array([0, 1]), clusters=np.array([0, 1]))
-    assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array([0, 0]), clusters=np.array([0, 0]))
+    for groups, clusters in (([0, 1], [0, 1]), ([0, 0], [0, 0])):
+        assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array(groups),
+                                      clusters=np.array(clusters))
     assert not crosses_closed_gap(between, ellipses, entered=np.array([], dtype=int), **grouped)
