@@ -10,7 +10,8 @@ A replan starts at the robot's pose and heading and runs through the remaining g
 curve of a new plan would fail verification, the plan is re-optimised with wider margins (the same
 repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept. A car that
 newly grown covers have boxed in, with no turn left inside the full margin, plans with the margin
-within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it.
+within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it;
+boxed in even there, it gets `no_path` with that reason.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
@@ -56,6 +57,8 @@ _REPAIR_MIN_LEVEL = 0.5
 # A repair that has not met the curvature bound in this many solves gives way to the next margin or
 # to a replan (field-25: 8–9 solves, about 90 ms, on repairs that then failed verification).
 _REPAIR_ITERATIONS_UNMET = 4
+_BOXED_IN = ("boxed in: every turn the car can make from here crosses an obstacle, even with the margin near it "
+             "given up to the hard floor, and the car does not reverse")
 
 
 @dataclass(frozen=True)
@@ -442,7 +445,8 @@ class PlannerStage:
         fails. A car that grown covers have boxed in (`boxed_in`) gets no curve verified at any of
         those margins, and trying them all costs seconds: it plans against the `relieved` ellipses
         (the margin near it given up down to the hard floor) first. Whichever comes first, the other
-        is tried when it does not verify; with neither verified, the full-margin plan is returned.
+        is tried when it does not verify; with neither verified, the full-margin plan is returned —
+        or `no_path`, when the car is boxed in even with the margin near it at the hard floor.
         """
         config = self.config
         options = [(ellipses, config.repairs, False)]
@@ -467,4 +471,10 @@ class PlannerStage:
             if not relief:
                 fallback = (plan, used, relief)
         assert fallback is not None  # the full-margin option is always tried
+        floor = relieved if relieved is not None else ellipses
+        if boxed_in(EllipseStack.of(floor), start=position, heading_rad=heading_rad,
+                    max_curvature=config.max_curvature):
+            # Nothing verified, and every turn crosses even the hard floor: the car, which only drives
+            # forwards, cannot leave. Say so, rather than publish a curve the smoother must reject.
+            return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None
         return fallback

@@ -10,7 +10,7 @@ import numpy as np
 
 from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
-from schemas.scenario import bundled_scenario, load_scenario
+from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
 from services.convert import ellipse_to_msg, ellipses_from_msgs
 from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap
@@ -97,6 +97,22 @@ def _ellipsoids_with(seq: int, *circles: tuple[tuple[float, float], float]) -> E
     wire = [ellipse_to_msg(Ellipse.circle(center=c, radius=r), group=k, cluster_id=k) for k, (c, r) in enumerate(circles)]
     return Ellipsoids(header=Header(stamp_s=0.1 * seq, seq=seq), scan_seq=seq, inflation_m=SCENARIO.inflation_m,
                       ellipsoids=wire)
+
+
+def test_a_car_boxed_in_even_at_the_hard_floor_gets_no_path_with_the_reason():
+    """An unseen field of field-60's kind, closed loop at t = 13 s: the car stands in a pocket that a
+    grown cover closed. No curve verifies, and every turn crosses even the hard floor: the planner says
+    so (no_path, whereupon the sim ends the run) rather than publish a curve the smoother rejects."""
+    doc = json.loads((Path(__file__).parents[1] / "data" / "unseen60-boxed-in.json").read_text())
+    scenario = parse_scenario(json.dumps(doc["scenario"]), source="unseen60-boxed-in")
+    robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
+    start = np.array([robot.pose.x_m, robot.pose.y_m])
+    assert EllipseStack.of(ellipses_from_msgs(sensed.ellipsoids)).levels(start).min() > 1.0  # not in collision
+    planner = PlannerStage.from_scenario(scenario)
+    planner.process(topic="state", message=robot, now_s=0.0)
+    (_, raw), = planner.process(topic="ellipsoids", message=sensed, now_s=0.0)
+    assert raw.status == "no_path" and raw.reason.startswith("boxed in") and raw.points == []
+    assert planner.plan is None
 
 
 def test_a_plan_that_a_grown_cover_invalidates_is_repaired_on_the_same_side_of_it():
