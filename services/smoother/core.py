@@ -261,8 +261,9 @@ def _smooth_straight(
     points = start + t[:, None] * (end - start)
     min_level = np.inf
     if ellipses:
-        # One segment against every ellipse (no broad phase needed); the offset is scaled into each
-        # ellipse's frame by ‖Aⱼ‖_F ≥ ‖Aⱼ‖₂, as in `EllipseStack.min_segment_levels`.
+        # One segment against every ellipse (no broad phase needed). The offset is scaled into each
+        # ellipse's frame by ‖Aⱼ‖_F, an upper bound on the ‖Aⱼ‖₂ (`EllipseStack.stretch`) that
+        # `EllipseStack.min_segment_levels` scales a sag by: never a looser test than that one.
         stack = EllipseStack.of(ellipses)
         levels = stack.segment_levels(start[None], end[None])[0] - offset_m * np.linalg.norm(stack.A, axis=(1, 2))
         min_level = float(np.min(levels))
