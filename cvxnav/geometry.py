@@ -184,16 +184,12 @@ class EllipseStack:
         """
         p = np.atleast_2d(np.asarray(starts, dtype=float))
         q = np.atleast_2d(np.asarray(ends, dtype=float))
-        rows, cols = np.meshgrid(np.arange(len(p)), np.arange(len(self)), indexing="ij")
-        return self._pair_segment_levels(p, q, rows.ravel(), cols.ravel()).reshape(len(p), len(self))
+        return _segment_minimum(np.einsum("mij,nj->nmi", self.A, p) + self.b, np.einsum("mij,nj->nmi", self.A, q - p))
 
     def _pair_segment_levels(self, p: FloatArray, q: FloatArray, rows: FloatArray, cols: FloatArray) -> FloatArray:
         A = self.A[cols]
         u0 = np.einsum("kij,kj->ki", A, p[rows]) + self.b[cols]
-        v = np.einsum("kij,kj->ki", A, q[rows] - p[rows])
-        vv = np.einsum("ki,ki->k", v, v)
-        t = np.clip(-np.einsum("ki,ki->k", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
-        return np.linalg.norm(u0 + t[:, None] * v, axis=1)
+        return _segment_minimum(u0, np.einsum("kij,kj->ki", A, q[rows] - p[rows]))
 
     def near_pairs(self, centers: FloatArray, radii: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Pairs (i, j) where the disc (centers[i], radii[i]) meets ellipse j's bounding disc."""
@@ -238,6 +234,13 @@ class EllipseStack:
         sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
         rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag)
         return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
+
+
+def _segment_minimum(u0: FloatArray, v: FloatArray) -> FloatArray:
+    """min over t ∈ [0, 1] of ‖u₀ + t v‖ along the last axis (segments in unit-disc frames)."""
+    vv = np.einsum("...i,...i->...", v, v)
+    t = np.clip(-np.einsum("...i,...i->...", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
+    return np.linalg.norm(u0 + t[..., None] * v, axis=-1)
 
 
 def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) -> FloatArray:
