@@ -75,23 +75,19 @@ def _straight(
 def _route(
     *,
     start: FloatArray,
-    heading_rad: float | None,
+    origin: FloatArray,
     goals: FloatArray,
     ellipses: list[Ellipse],
     bounds_min: FloatArray,
     bounds_max: FloatArray,
     level: float,
-    lead_in_m: float,
     extra_m: float,
 ) -> list[FloatArray] | None:
-    """Legs of the shortest route, optionally after a straight lead-in and round enlarged ellipses."""
+    """Legs of the shortest route, after a straight lead-in start → origin (none when origin is start),
+    round ellipses enlarged by `extra_m`."""
     grown = [e.grown(extra_m) for e in ellipses] if extra_m > 0 else ellipses
-    origin = start
-    if lead_in_m > 0 and heading_rad is not None:
-        origin = start + lead_in_m * np.array([np.cos(heading_rad), np.sin(heading_rad)])
-        lead = np.vstack([start, origin])
-        if np.any(origin < bounds_min) or np.any(origin > bounds_max) or len(intersected(lead, grown, level=level)):
-            return None
+    if origin is not start and len(intersected(np.vstack([start, origin]), grown, level=level)):
+        return None
     reference = np.vstack([origin, goals])
     if len(intersected(reference, grown, level=level)) == 0:
         legs = [reference[k : k + 2] for k in range(len(goals))]
@@ -141,22 +137,31 @@ def plan_path(
     if straight is not None:
         return straight
     radius = 1.0 / (settings.curvature_factor * max_curvature)
+    # The lead-in: one turning radius along the start heading (none without a heading). Where it
+    # leaves the map or crosses an ellipse, it crosses the enlarged ones too: no route after it.
+    lead_end: FloatArray | None = start
+    if heading_rad is not None:
+        lead_end = start + radius * np.array([np.cos(heading_rad), np.sin(heading_rad)])
+        if (np.any(lead_end < bounds_min) or np.any(lead_end > bounds_max)
+                or len(intersected(np.vstack([start, lead_end]), ellipses, level=settings.level))):
+            lead_end = None
     best: PathPlan | None = None
     best_slack = np.inf
-    for lead_in_m, extra_m in ((0.0, 0.0), (radius, 0.0), (radius, 0.5 * radius), (0.0, radius)):
+    for lead_in, extra_m in ((False, 0.0), (True, 0.0), (True, 0.5 * radius), (False, radius)):
+        if lead_in and (lead_end is None or (lead_end is start and extra_m == 0.0)):
+            continue  # blocked, or the first route again
         legs = _route(
             start=start,
-            heading_rad=heading_rad,
+            origin=lead_end if lead_in else start,
             goals=goals,
             ellipses=ellipses,
             bounds_min=bounds_min,
             bounds_max=bounds_max,
             level=settings.level,
-            lead_in_m=lead_in_m,
             extra_m=extra_m,
         )
         if legs is None:
-            if best is None and lead_in_m == 0.0 and extra_m == 0.0:
+            if best is None and not lead_in and extra_m == 0.0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
         try:
@@ -199,11 +204,19 @@ def plan_until_verified(
     Without a verified curve: the last plan whose curve failed, with that curve; else (every attempt
     found no route) the first attempt's no_path, with None. An attempt's no_path does not end the
     search: a repair with a narrower margin may open a passage the wider ones closed.
+
+    A wider margin is for a curve that clips an ellipse. Once a curve has broken the curvature bound,
+    the margins that are no narrower and bend no more sharply are skipped: their feasible sets lie
+    within the one that failed (in the closed loops, each such attempt cost 12 solves and failed too).
     `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
     """
     attempts = [settings] + [replace(settings, level=level, curvature_factor=factor) for level, factor in repairs]
     fallback: tuple[PathPlan, Smoothed | None] | None = None
+    too_sharp: list[RefineSettings] = []  # attempts whose curve broke the curvature bound
     for attempt in attempts:
+        if any(attempt.level >= failed.level and attempt.curvature_factor <= failed.curvature_factor
+               for failed in too_sharp):
+            continue
         with timer("optimize"):
             plan = plan_path(**problem, settings=attempt)
         if plan.status != "ok":
@@ -213,6 +226,8 @@ def plan_until_verified(
             smoothed = smooth_fn(plan.points)
         if smoothed.verification.ok:
             return plan, smoothed
+        if smoothed.verification.max_curvature > problem["max_curvature"]:
+            too_sharp.append(attempt)
         fallback = (plan, smoothed)
     assert fallback is not None  # attempts is never empty
     return fallback
