@@ -133,3 +133,25 @@ def test_direct_clarabel_route_agrees_with_the_cvxpy_model():
     }
     assert results["cvxpy"].iterations == results["clarabel"].iterations
     assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
+
+
+def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
+    """A goal 1 m to the left of a car that turns no tighter than 2 m: no curve verifies. The repair with
+    a wider margin and a sharper bend is skipped; the one with a narrower margin is still tried."""
+    from services.planner.core import plan_until_verified
+    from services.smoother.core import smooth
+
+    goals = np.array([[0.0, 1.0]])
+    attempts = []
+
+    def smooth_fn(points):
+        attempts.append(points)
+        return smooth(points, ellipses=[], max_curvature=0.5, heading_rad=0.0, goals=goals, goal_tolerance_m=0.1, **BOX)
+
+    plan, smoothed = plan_until_verified(
+        start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, ellipses=[], max_curvature=0.5, **BOX,
+        settings=RefineSettings(), repairs=((1.05, 0.8), (1.0, 0.97)), smooth_fn=smooth_fn,
+    )
+    assert plan.status == "ok" and not smoothed.verification.ok
+    assert smoothed.verification.max_curvature > 0.5
+    assert len(attempts) == 2  # the base margin and (1.0, 0.97); (1.05, 0.8) is stricter than the base
