@@ -1,9 +1,16 @@
 """`cvxnav replay FILE --stage NAME [--entry module:factory]`: re-run one stage's core on a recording.
 
-The recording (`cvxnav.record`) holds every message of a run in receive order. Replay feeds the
-stage's inputs (its keys in the wiring table) to a fresh core, the default one or the factory named by
-``--entry`` (the same entry points `cvxnav run --stages` takes), through the same decode step as the
-Zenoh shell, and compares what it returns with what the stage published in the run.
+The recording (`cvxnav.record`) holds every message of a run in the order the recorder received it.
+Replay feeds the stage's inputs (its keys in the wiring table) to a fresh core, the default one or the
+factory named by ``--entry`` (the same entry points `cvxnav run --stages` takes), through the same
+decode step as the Zenoh shell, and compares what it returns with what the stage published in the run.
+
+The inputs are fed in the order the stage handled them, not the order the recorder received them:
+the two differ on a loaded machine (the sim's state for the next scan can reach the recorder before
+the planner's input from the scan before, which the planner had long handled). A stage publishes a
+status after every input it handles, naming the input's key and stamp (`StageStatus`), so the
+statuses give that order; inputs the stage never handled (superseded in its ring) are not fed. A
+recording without such statuses (a stage that publishes none) is replayed in receive order.
 
 Outputs are matched by topic, ``scan_seq`` and their order among the outputs for that scan, and
 compared field by field (numbers within ``rtol``/``atol``; the header's sequence number included, so
@@ -22,8 +29,8 @@ from typing import Any
 from cvxnav.record import Recorded, Recording
 from cvxnav.run import DEFAULT_FACTORIES, load_factory
 from cvxnav.runtime import StageCore, StageInputError
-from schemas.messages import DecodeError, Message, decode
-from schemas.wiring import STAGES, key, model_for
+from schemas.messages import DecodeError, Message, StageStatus, decode
+from schemas.wiring import STAGES, key, model_for, status_key
 
 RTOL = 1e-6
 ATOL = 1e-9
@@ -73,10 +80,10 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
             message = _decoded(outputs[item.key], item)
             if message is not None:
                 _index(recorded, counts_rec, outputs[item.key], message)
-        elif item.key in inputs:
-            report.inputs += 1
-            for topic, message in _process(core, inputs[item.key], item, report):
-                _index(replayed, counts_rep, topic, message)
+    for item in handling_order(recording, stage=stage, inputs=inputs):
+        report.inputs += 1
+        for topic, message in _process(core, inputs[item.key], item, report):
+            _index(replayed, counts_rep, topic, message)
     for match in sorted(recorded.keys() | replayed.keys(), key=lambda m: (m[1], m[0], m[2])):
         if match not in replayed:
             report.missing.append(match)
@@ -90,6 +97,32 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
                 topic, scan_seq, k = match
                 report.differences.append(f"{topic} for scan {scan_seq} (#{k}): {where}")
     return report
+
+
+def handling_order(recording: Recording, *, stage: str, inputs: dict[str, str]) -> list[Recorded]:
+    """The stage's recorded inputs (`inputs`: key → topic) in the order its statuses say it handled them.
+
+    Each status with an input names its key and, if the input decoded, its stamp; it is matched to the
+    first recorded input not yet matched with that key and stamp. Without any such status, every
+    input, in receive order.
+    """
+    received = [item for item in recording.messages if item.key in inputs]
+    handled = []
+    for item in recording.messages:
+        if item.key == status_key(recording.prefix, stage):
+            try:
+                status = decode(StageStatus, item.payload, encoding=item.encoding or None)
+            except DecodeError:
+                continue
+            if status.input_key in inputs:
+                handled.append((status.input_key, status.input_stamp_s))
+    if not handled:
+        return received
+    waiting: defaultdict[tuple[str, float | None], list[Recorded]] = defaultdict(list)
+    for item in received:
+        message = _decoded(inputs[item.key], item)
+        waiting[(item.key, message.header.stamp_s if message is not None else None)].append(item)
+    return [waiting[match].pop(0) for match in handled if waiting[match]]
 
 
 def _decoded(topic: str, item: Recorded) -> Message | None:
