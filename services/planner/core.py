@@ -208,8 +208,8 @@ def plan_until_verified(
     A wider margin is for a curve that clips an ellipse. Once a curve has broken the curvature bound,
     the margins that are no narrower and bend no more sharply are skipped: their feasible sets lie
     within the one that failed. The refinement is local, so that is a heuristic, not a proof: on
-    field-60 each such attempt cost 12 solves and failed too, but in two of fifteen unseen closed loops
-    one of them once verified (the car went another way there; both runs still reached their goal).
+    field-60 each such attempt cost 12 solves and failed too, but in three of fifteen unseen closed
+    loops one of them once verified (the car went another way there; all three still reached their goal).
     `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
     """
     attempts = [settings] + [replace(settings, level=level, curvature_factor=factor) for level, factor in repairs]
