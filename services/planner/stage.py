@@ -371,9 +371,11 @@ class PlannerStage:
         if off_m > config.max_cross_track_m or len(trimmed) < 3:
             return None
         ahead = np.vstack([position, trimmed[1:]])
-        levels = EllipseStack.of(ellipses).min_segment_levels(ahead[:-1], ahead[1:])
-        if np.min(levels) < _REPAIR_MIN_LEVEL or crosses_closed_gap(
-                ahead, ellipses, entered=intersected(ahead, ellipses), groups=groups, clusters=clusters):
+        # One eq. (2) test of the plan's segments against the ellipses near them serves every check below.
+        rows, cols, levels = EllipseStack.of(ellipses).segment_pairs(ahead[:-1], ahead[1:])
+        entering = levels < 1.0
+        if np.min(levels, initial=np.inf) < _REPAIR_MIN_LEVEL or crosses_closed_gap(
+                ahead, ellipses, entered=np.unique(cols[entering]), groups=groups, clusters=clusters):
             return None
         ends, cut = [], 0
         for goal in goals:  # the plan's vertex at each goal, so that refine pins every goal it passes through
@@ -386,8 +388,8 @@ class PlannerStage:
         # past it, is re-optimised; the rest of the plan is kept. The kept rest's first step is pinned
         # too (a second leg), so the curvature bound holds across the join.
         along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ahead, axis=0), axis=1))])
-        bad = np.flatnonzero(levels < 1.0)
-        join = int(np.searchsorted(along, along[bad[-1] + 1] + config.repair_rejoin_m)) if len(bad) else len(ahead)
+        bad = rows[entering]  # segments the new ellipses invalidate
+        join = int(np.searchsorted(along, along[bad.max() + 1] + config.repair_rejoin_m)) if len(bad) else len(ahead)
         if join + 1 < ends[0]:
             legs, rest = [ahead[: join + 1], ahead[join : join + 2]], ahead[join + 2 :]
         else:
