@@ -80,10 +80,10 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
             message = _decoded(outputs[item.key], item)
             if message is not None:
                 _index(recorded, counts_rec, outputs[item.key], message)
-    for item in handling_order(recording, stage=stage, inputs=inputs):
+    for item, message in handling_order(recording, stage=stage, inputs=inputs):
         report.inputs += 1
-        for topic, message in _process(core, inputs[item.key], item, report):
-            _index(replayed, counts_rep, topic, message)
+        for topic, output in _process(core, inputs[item.key], item, message, report):
+            _index(replayed, counts_rep, topic, output)
     for match in sorted(recorded.keys() | replayed.keys(), key=lambda m: (m[1], m[0], m[2])):
         if match not in replayed:
             report.missing.append(match)
@@ -99,17 +99,20 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
     return report
 
 
-def handling_order(recording: Recording, *, stage: str, inputs: dict[str, str]) -> list[Recorded]:
-    """The stage's recorded inputs (`inputs`: key → topic) in the order its statuses say it handled them.
+def handling_order(recording: Recording, *, stage: str,
+                   inputs: dict[str, str]) -> list[tuple[Recorded, Message | None]]:
+    """The stage's recorded inputs (`inputs`: key → topic), each with its decoded message (None if it
+    does not decode), in the order the stage's statuses say it handled them.
 
     Each status with an input names its key and, if the input decoded, its stamp; it is matched to the
     first recorded input not yet matched with that key and stamp. Without any such status, every
     input, in receive order.
     """
-    received = [item for item in recording.messages if item.key in inputs]
+    received = [(item, _decoded(inputs[item.key], item)) for item in recording.messages if item.key in inputs]
+    statuses = status_key(recording.prefix, stage)
     handled = []
     for item in recording.messages:
-        if item.key == status_key(recording.prefix, stage):
+        if item.key == statuses:
             try:
                 status = decode(StageStatus, item.payload, encoding=item.encoding or None)
             except DecodeError:
@@ -118,10 +121,9 @@ def handling_order(recording: Recording, *, stage: str, inputs: dict[str, str]) 
                 handled.append((status.input_key, status.input_stamp_s))
     if not handled:
         return received
-    waiting: defaultdict[tuple[str, float | None], list[Recorded]] = defaultdict(list)
-    for item in received:
-        message = _decoded(inputs[item.key], item)
-        waiting[(item.key, message.header.stamp_s if message is not None else None)].append(item)
+    waiting: defaultdict[tuple[str, float | None], list[tuple[Recorded, Message | None]]] = defaultdict(list)
+    for item, message in received:
+        waiting[(item.key, message.header.stamp_s if message is not None else None)].append((item, message))
     return [waiting[match].pop(0) for match in handled if waiting[match]]
 
 
@@ -132,8 +134,8 @@ def _decoded(topic: str, item: Recorded) -> Message | None:
         return None
 
 
-def _process(core: StageCore, topic: str, item: Recorded, report: ReplayReport) -> list[tuple[str, Message]]:
-    message = _decoded(topic, item)
+def _process(core: StageCore, topic: str, item: Recorded, message: Message | None,
+             report: ReplayReport) -> list[tuple[str, Message]]:
     if message is None:
         report.rejected["undecodable"] = report.rejected.get("undecodable", 0) + 1
         return []

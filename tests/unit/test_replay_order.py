@@ -48,7 +48,7 @@ def test_replay_follows_the_stages_handling_order_not_the_recorders():
     recording = Recording(prefix=PREFIX, scenario=SCENARIO, messages=[*received, *outputs, *statuses])
 
     order = handling_order(recording, stage="planner", inputs={key(PREFIX, t): t for t in ("state", "ellipsoids")})
-    assert [item.payload for item in order] == [message.to_json_bytes() for _, message in inputs]
+    assert [item.payload for item, _ in order] == [message.to_json_bytes() for _, message in inputs]
     assert replay_stage(recording, stage="planner").reproduced
 
     # Without the statuses there is nothing to go by but the receive order, and scan 0 is planned
