@@ -8,6 +8,10 @@ are assumed to sit symmetrically about the footprint centre, so centre = rear + 
 Consequence worth knowing: at steering δ the rear axle turns on radius R = L / tan δ (the CONTRACTS'
 minimum turn radius), while the footprint centre turns on the slightly larger sqrt(R² + (L/2)²).
 
+The car reverses (negative speed) only when asked to, no faster than `max_reverse_speed_mps`: the sim
+backs it out of a dead end along its own tracks (`sim.service`). A change of direction comes to rest
+first: a step that would cross zero speed ends at rest.
+
 Within one step the steering angle and the speed ramp linearly from their old to their new (limited)
 values (a first-order hold); the step is split into sub-steps, each integrated as the exact arc for the
 sub-step's mid values. With constant inputs the result is exact; otherwise the error is O((dt/n)²).
@@ -49,10 +53,11 @@ class VehicleLimits:
     max_steering_rate_radps: float
     max_accel_mps2: float = 1.0
     max_decel_mps2: float = 2.0
+    max_reverse_speed_mps: float = 0.3
 
     def __post_init__(self) -> None:
         for name in ("wheelbase_m", "max_speed_mps", "max_steering_rad", "max_steering_rate_radps",
-                     "max_accel_mps2", "max_decel_mps2"):
+                     "max_accel_mps2", "max_decel_mps2", "max_reverse_speed_mps"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be finite and positive, got {value!r}")
@@ -101,7 +106,8 @@ def step(
     """Advance `dt_s` seconds towards the targets, within every limit.
 
     Steering: target clamped to ±max, then the change clamped to ±max_rate·dt. Speed: target clamped to
-    [0, max] (the car does not reverse), then the change clamped to [−decel·dt, +accel·dt].
+    [−max_reverse, max], then the change clamped to accel·dt away from rest and decel·dt towards it;
+    a change that would cross zero stops at rest (the car changes direction from standstill).
     """
     if not (math.isfinite(dt_s) and dt_s >= 0.0):
         raise ValueError(f"dt_s must be finite and non-negative, got {dt_s!r}")
@@ -113,13 +119,13 @@ def step(
     delta_target = _clip(target_steering_rad, -max_delta, max_delta)
     delta1 = _clip(delta0 + _clip(delta_target - delta0, -max_change, max_change), -max_delta, max_delta)
 
-    v0 = _clip(state.speed_mps, 0.0, limits.max_speed_mps)
-    v_target = _clip(target_speed_mps, 0.0, limits.max_speed_mps)
-    v1 = _clip(
-        v0 + _clip(v_target - v0, -limits.max_decel_mps2 * dt_s, limits.max_accel_mps2 * dt_s),
-        0.0,
-        limits.max_speed_mps,
-    )
+    v0 = _clip(state.speed_mps, -limits.max_reverse_speed_mps, limits.max_speed_mps)
+    v_target = _clip(target_speed_mps, -limits.max_reverse_speed_mps, limits.max_speed_mps)
+    if v0 * v_target < 0.0:
+        v_target = 0.0  # rest first, then the other way
+    away = abs(v_target) > abs(v0)
+    change = (limits.max_accel_mps2 if away else limits.max_decel_mps2) * dt_s
+    v1 = v0 + _clip(v_target - v0, -change, change)
 
     L = limits.wheelbase_m
     xr, yr = rear_axle(state, wheelbase_m=L)

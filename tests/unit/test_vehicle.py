@@ -67,9 +67,10 @@ def test_limits_hold_every_step(targets: list[tuple[float, float]], dt_s: float)
         new = step(state, limits=PAPER, target_speed_mps=speed, target_steering_rad=steer, dt_s=dt_s)
         assert abs(new.steering_rad - state.steering_rad) <= PAPER.max_steering_rate_radps * dt_s + 1e-12
         assert abs(new.steering_rad) <= PAPER.max_steering_rad + 1e-12
-        assert 0.0 <= new.speed_mps <= PAPER.max_speed_mps
-        assert new.speed_mps - state.speed_mps <= PAPER.max_accel_mps2 * dt_s + 1e-12
-        assert state.speed_mps - new.speed_mps <= PAPER.max_decel_mps2 * dt_s + 1e-12
+        assert -PAPER.max_reverse_speed_mps <= new.speed_mps <= PAPER.max_speed_mps
+        assert new.speed_mps * state.speed_mps >= 0.0  # a change of direction passes through rest
+        assert abs(new.speed_mps) - abs(state.speed_mps) <= PAPER.max_accel_mps2 * dt_s + 1e-12
+        assert abs(state.speed_mps) - abs(new.speed_mps) <= PAPER.max_decel_mps2 * dt_s + 1e-12
         # Distance covered never exceeds max speed × time. The speed is the rear axle's; while
         # steering at δ the footprint centre, L/2 ahead of it, moves √(1 + (tan δ / 2)²) faster.
         centre_factor = math.hypot(1.0, math.tan(PAPER.max_steering_rad) / 2.0)
@@ -86,3 +87,16 @@ def test_footprint_is_the_rotated_rectangle_centred_on_the_pose() -> None:
     assert abs(shape.centroid.x - 3.0) < 1e-12 and abs(shape.centroid.y + 1.0) < 1e-12
     minx, miny, maxx, maxy = shape.bounds
     assert abs((maxx - minx) - 0.3) < 1e-12 and abs((maxy - miny) - 0.6) < 1e-12
+
+
+def test_reversing_at_the_same_steering_runs_back_along_the_same_circle() -> None:
+    delta = PAPER.max_steering_rad
+    state = VehicleState(x_m=0.0, y_m=0.0, theta_rad=0.0, steering_rad=delta)
+    rear = []
+    for target in (0.5,) * 60 + (-0.3,) * 80:
+        state = step(state, limits=PAPER, target_speed_mps=target, target_steering_rad=delta, dt_s=0.05)
+        rear.append(rear_axle(state, wheelbase_m=PAPER.wheelbase_m))
+    assert state.speed_mps == -PAPER.max_reverse_speed_mps
+    centre, radius = _fit_circle(np.array(rear))
+    R = PAPER.wheelbase_m / math.tan(delta)
+    assert abs(radius - R) < 1e-9 and np.allclose(centre, [-0.5 * PAPER.wheelbase_m, R], atol=1e-9)
