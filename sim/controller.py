@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sim.vehicle import VehicleLimits, VehicleState
+from sim.vehicle import VehicleLimits, VehicleState, rear_axle
 
 FloatArray = NDArray[np.float64]
 
@@ -104,12 +104,15 @@ class PurePursuit:
     max_decel_mps2: float = 1.0
     stop_tolerance_m: float = 0.05
     search_window_m: float = 2.0
+    reverse_speed_mps: float = 0.3  # backing out (`reverse_command`)
+    reverse_lookahead_m: float = 0.5
 
     @classmethod
     def from_limits(cls, limits: VehicleLimits, **overrides: float) -> PurePursuit:
         return cls(wheelbase_m=limits.wheelbase_m, max_speed_mps=limits.max_speed_mps,
                    max_steering_rad=limits.max_steering_rad,
-                   max_steering_rate_radps=limits.max_steering_rate_radps, **overrides)
+                   max_steering_rate_radps=limits.max_steering_rate_radps,
+                   **{"reverse_speed_mps": limits.max_reverse_speed_mps, **overrides})
 
     def command(self, state: VehicleState, *, path: ArrayLike, progress_m: float | None = None) -> Command:
         """Steering and speed targets to follow `path` ((n, 2), centre line) from `state`."""
@@ -119,25 +122,8 @@ class PurePursuit:
         if len(z) == 1:
             z = np.vstack([z, z])
         centre = np.array([state.x_m, state.y_m])
-
-        # Project the centre onto every segment; keep the nearest (within the search window if given).
-        a, b = z[:-1], z[1:]
-        e = b - a
-        seg_len = np.linalg.norm(e, axis=1)
-        s_start = np.concatenate([[0.0], np.cumsum(seg_len)])
-        total = float(s_start[-1])
-        ee = np.where(seg_len > 0.0, seg_len**2, 1.0)
-        u = np.clip(np.einsum("ij,ij->i", centre - a, e) / ee, 0.0, 1.0)
-        foot = a + u[:, None] * e
-        dist = np.linalg.norm(foot - centre, axis=1)
-        if progress_m is not None:
-            in_window = (s_start[1:] >= progress_m - self.search_window_m) & (
-                s_start[:-1] <= progress_m + self.search_window_m)
-            dist = np.where(in_window, dist, np.inf) if in_window.any() else dist
-        k = int(np.argmin(dist))
-        s_here = float(s_start[k] + u[k] * seg_len[k])
-        cross_track = float(np.linalg.norm(foot[k] - centre))
-        remaining = max(total - s_here, 0.0)
+        s_start, seg_len, s_here, cross_track = self._project(z, centre, progress_m=progress_m)
+        remaining = max(float(s_start[-1]) - s_here, 0.0)
 
         speed = self._speed(z=z, s_vertices=s_start, seg_len=seg_len, s_here=s_here, remaining_m=remaining,
                             steering_rad=state.steering_rad)
@@ -152,6 +138,52 @@ class PurePursuit:
             speed = min(speed, math.sqrt(self.max_lateral_accel_mps2 / kappa_cmd))
         return Command(target_speed_mps=speed, target_steering_rad=steering, progress_m=s_here,
                        remaining_m=remaining, cross_track_m=cross_track)
+
+    def reverse_command(self, state: VehicleState, *, path: ArrayLike, progress_m: float | None = None) -> Command:
+        """Steering and speed (negative) targets to back the rear axle along `path` ((n, 2), rear-axle
+        points in the order to drive them), at most `reverse_speed_mps`, coming to rest at its end.
+
+        In reverse the rear axle leads, and it moves along the heading whichever way the car goes, so
+        it is the point to track: the arc through it, tangent to the heading, through the lookahead
+        point g behind it (rear-axle frame) has curvature 2 g_y / |g|², and tan δ = L κ, as forward.
+        """
+        z = np.asarray(path, dtype=float).reshape(-1, 2)
+        rear = np.array(rear_axle(state, wheelbase_m=self.wheelbase_m))
+        if len(z) < 2:
+            return Command(target_speed_mps=0.0, target_steering_rad=state.steering_rad)
+        s_start, seg_len, s_here, cross_track = self._project(z, rear, progress_m=progress_m)
+        remaining = max(float(s_start[-1]) - s_here, 0.0)
+        speed = 0.0
+        if remaining > self.stop_tolerance_m:
+            speed = min(self.reverse_speed_mps, math.sqrt(2.0 * self.max_decel_mps2 * remaining))
+        goal = self._point_at(z=z, s_vertices=s_start, seg_len=seg_len, s_m=s_here + self.reverse_lookahead_m)
+        c, s = math.cos(state.theta_rad), math.sin(state.theta_rad)
+        dx, dy = float(goal[0] - rear[0]), float(goal[1] - rear[1])
+        gx, gy = c * dx + s * dy, -s * dx + c * dy
+        g2 = gx * gx + gy * gy
+        steering = math.atan(2.0 * self.wheelbase_m * gy / g2) if g2 > 1e-12 else 0.0
+        steering = max(-self.max_steering_rad, min(self.max_steering_rad, steering))
+        return Command(target_speed_mps=-speed, target_steering_rad=steering, progress_m=s_here,
+                       remaining_m=remaining, cross_track_m=cross_track)
+
+    def _project(self, z: FloatArray, point: FloatArray, *, progress_m: float | None
+                 ) -> tuple[FloatArray, FloatArray, float, float]:
+        """Arc length at each vertex, segment lengths, and the arc length of and distance to the point's
+        projection onto the path: the nearest foot, within the search window of `progress_m` if given."""
+        a, b = z[:-1], z[1:]
+        e = b - a
+        seg_len = np.linalg.norm(e, axis=1)
+        s_start = np.concatenate([[0.0], np.cumsum(seg_len)])
+        ee = np.where(seg_len > 0.0, seg_len**2, 1.0)
+        u = np.clip(np.einsum("ij,ij->i", point - a, e) / ee, 0.0, 1.0)
+        foot = a + u[:, None] * e
+        dist = np.linalg.norm(foot - point, axis=1)
+        if progress_m is not None:
+            in_window = (s_start[1:] >= progress_m - self.search_window_m) & (
+                s_start[:-1] <= progress_m + self.search_window_m)
+            dist = np.where(in_window, dist, np.inf) if in_window.any() else dist
+        k = int(np.argmin(dist))
+        return s_start, seg_len, float(s_start[k] + u[k] * seg_len[k]), float(dist[k])
 
     def _speed(self, *, z: FloatArray, s_vertices: FloatArray, seg_len: FloatArray, s_here: float,
                remaining_m: float, steering_rad: float) -> float:

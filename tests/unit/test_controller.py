@@ -1,4 +1,5 @@
-"""Pure pursuit closes onto lines and circles, respects the car's curvature, stops at the end; goals in order."""
+"""Pure pursuit closes onto lines and circles, respects the car's curvature, stops at the end, backs out
+along its own tracks; goals in order."""
 
 from __future__ import annotations
 
@@ -123,6 +124,36 @@ def test_tracks_an_s_bend_at_the_curvature_bound_within_the_steering_rate() -> N
     assert commands[-1].remaining_m < 0.1  # it got through
     assert cross_track.max() < 0.1
     assert _max_driven_curvature(states) <= KAPPA_MAX * 1.01
+
+
+def test_backs_out_along_its_own_tracks() -> None:
+    """Reverse pursuit of the rear axle's track retraces an S-bend: the centre stays on its forward
+    track, the car reverses no faster than its reverse speed, and comes to rest where it started."""
+    t = np.linspace(0.0, 12.0, 400)
+    bend = np.column_stack([t, 1.5 * np.sin(t / 2.5)])
+    states, _ = _drive(VehicleState(x_m=0.0, y_m=0.0, theta_rad=math.atan(0.6)), bend, steps=600)
+    assert states[-1].speed_mps == 0.0
+    controller = PurePursuit.from_limits(LIMITS)
+    tracks = np.array([rear_axle(s, wheelbase_m=LIMITS.wheelbase_m) for s in states])[::-1]
+    forward = _centres(states)
+    state, progress, back = states[-1], None, []
+    for _ in range(2000):
+        cmd = controller.reverse_command(state, path=tracks, progress_m=progress)
+        progress = cmd.progress_m
+        state = step(state, limits=LIMITS, target_speed_mps=cmd.target_speed_mps,
+                     target_steering_rad=cmd.target_steering_rad, dt_s=DT_S)
+        back.append(state)
+        if cmd.target_speed_mps == 0.0 and state.speed_mps == 0.0:
+            break
+    assert min(s.speed_mps for s in back) >= -controller.reverse_speed_mps
+    assert math.hypot(state.x_m, state.y_m) < 0.1
+    # Distance of each backing centre from the forward polyline (dense: 5 cm or less apart).
+    a, e = forward[:-1], np.diff(forward, axis=0)
+    worst = 0.0
+    for c in _centres(back):
+        u = np.clip(np.einsum("ij,ij->i", c - a, e) / np.maximum(np.einsum("ij,ij->i", e, e), 1e-18), 0.0, 1.0)
+        worst = max(worst, float(np.min(np.linalg.norm(a + u[:, None] * e - c, axis=1))))
+    assert worst < 0.01
 
 
 def test_goal_tracker_advances_in_order() -> None:
