@@ -105,7 +105,8 @@ class PurePursuit:
     stop_tolerance_m: float = 0.05
     search_window_m: float = 2.0
     reverse_speed_mps: float = 0.3  # backing out (`reverse_command`)
-    reverse_lookahead_m: float = 0.5
+    reverse_lookahead_m: float = 0.2  # short: the tracks bend at full lock where the car turned hard
+    reverse_swing_m: float = 0.05
 
     @classmethod
     def from_limits(cls, limits: VehicleLimits, **overrides: float) -> PurePursuit:
@@ -163,6 +164,11 @@ class PurePursuit:
         g2 = gx * gx + gy * gy
         steering = math.atan(2.0 * self.wheelbase_m * gy / g2) if g2 > 1e-12 else 0.0
         steering = max(-self.max_steering_rad, min(self.max_steering_rad, steering))
+        # Slow while the wheels swing (they start where the car stopped): cover at most
+        # `reverse_swing_m` before they reach the angle asked for.
+        swing = abs(steering - state.steering_rad)
+        if swing > 0.0:
+            speed = min(speed, self.max_steering_rate_radps * self.reverse_swing_m / swing)
         return Command(target_speed_mps=-speed, target_steering_rad=steering, progress_m=s_here,
                        remaining_m=remaining, cross_track_m=cross_track)
 

@@ -14,6 +14,15 @@ answers and integrates the car. `run_sim` is the Zenoh shell around it, in one o
   used whenever it arrives, as on a real robot.
 
 Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
+When the pipeline answers a scan without a path it can drive (no_path, or a stage's error for that
+scan) and the car is at rest, the car backs out along its own tracks, one turning radius at a time and
+at most `max_backouts` times per goal, scanning again after each. A car can drive into a dead end before it has
+seen that it is one: in a dense field it then has no forward turn left inside the margins (a closed
+loop in a 60-obstacle field stood still there for good; 4 m back along its tracks a plan verified).
+It backs out only over ground it has driven, and only when the guard finds those tracks clear of the
+newest ellipses; it does not scan meanwhile (the sensor faces the dead end it is leaving), so lockstep
+runs stay deterministic. Without tracks or backouts left, such answers for `no_path_patience_s` with
+the car at rest end the run as no_path.
 A smooth_path it cannot use (oversize, undecodable, or answering a scan it never sent) is ignored and
 reported on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input.
 Two watchdogs add to that:
@@ -84,6 +93,7 @@ PIPELINE_STAGES = tuple(name for name in STAGES if name != "sim")
 _UNHEARD_CELL_M = 0.01  # hits kept for a restarted sensing stage: one per cell of this size
 _UNHEARD_MAX = 10_000  # and at most this many (the newest), so a scan stays well under the payload cap
 _SCAN_POSES_KEPT = 256  # where the recent scans were taken (a path is checked from its scan's pose)
+_TRACK_STEP_M = 0.05  # the tracks the car can back out along: one pose per this much forward travel
 
 
 def default_time_limit_s(scenario: Scenario) -> float:
@@ -99,6 +109,8 @@ class SimConfig:
     time_limit_s: float | None = None  # sim time; None: default_time_limit_s(scenario)
     stale_after_s: float = 1.5  # a path older than this (sim time) is not driven on
     no_path_patience_s: float = 2.0  # no_path this long with the car stopped ends the run
+    backout_m: float | None = None  # how far the car backs out along its tracks at a time (None: one
+    max_backouts: int = 3  # minimum turning radius, the room a turn takes) ... and how often per goal
     noise_std_m: float = 0.0  # range noise, drawn from a generator seeded with `seed`
     seed: int = 0
     answer_timeout_s: float = 10.0  # lockstep: wall time to wait for the answer to a scan
@@ -130,8 +142,14 @@ class SimCore:
         self.path: np.ndarray | None = None
         self.path_time_s = -math.inf
         self.progress_m: float | None = None
-        self.no_path_since_s: float | None = None
+        self.no_path_since_s: float | None = None  # answers without a drivable path since then
         self.no_path_reason = ""
+        self.tracks: list[tuple[float, float, float]] = [self._pose()]  # forward poses, ≥ _TRACK_STEP_M apart
+        self.backout: np.ndarray | None = None  # rear-axle points to back along, while backing out
+        self.backout_progress_m: float | None = None
+        self.backout_keep = 0  # how many of `tracks` remain once the back-out ends
+        self.backouts = 0  # started for the current goal
+        self.backout_m = self.config.backout_m or self.limits.min_turn_radius_m
         self.plan_ids: list[int] = []
         self.guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
         self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
@@ -149,10 +167,18 @@ class SimCore:
 
     @property
     def scan_due(self) -> bool:
-        return self.step_index % self.steps_per_scan == 0
+        """A sensor tick: every sensor period, except while the car backs out."""
+        return self.step_index % self.steps_per_scan == 0 and self.backout is None
+
+    @property
+    def backing_out(self) -> bool:
+        return self.backout is not None
 
     def _row(self) -> tuple[float, float, float, float]:
         return (self.t_s, self.state.x_m, self.state.y_m, self.state.theta_rad)
+
+    def _pose(self) -> tuple[float, float, float]:
+        return (self.state.x_m, self.state.y_m, self.state.theta_rad)
 
     def robot_state(self) -> RobotState:
         s = self.state
@@ -227,7 +253,7 @@ class SimCore:
         An answer is ignored while a stage is down or when it answers a scan sent before the loss. A
         path that enters a known ellipse is not driven (the car brakes); the reason is returned.
         """
-        if self.missing or answer.scan_seq < self.resume_seq:
+        if self.missing or answer.scan_seq < self.resume_seq or self.backout is not None:
             return None
         if self.unheard_seq is not None and answer.scan_seq >= self.unheard_seq:
             self.unheard.clear()  # the restarted sensing stage has had them
@@ -235,17 +261,14 @@ class SimCore:
         if not self.plan_ids or self.plan_ids[-1] != answer.plan_id:
             self.plan_ids.append(answer.plan_id)
         if answer.status == "no_path":
-            self.path = None
-            self.no_path_reason = answer.reason
-            if self.no_path_since_s is None:
-                self.no_path_since_s = self.t_s
+            self.no_plan(answer.reason)
             return None
         if answer.goal_index != self.goals.reached_count or len(answer.points) < 2:
             return None  # planned for a goal already passed: keep the current path until the replan
         start = self.scan_xy.get(answer.scan_seq, (self.state.x_m, self.state.y_m))
         reason = self.guard.check(answer.points, start=start)
         if reason is not None:
-            self.reject(f"plan {answer.plan_id}: {reason}")
+            self.no_plan(f"plan {answer.plan_id}: {reason}")
             return reason
         self.path = np.asarray(answer.points, dtype=float)
         self.path_time_s = self.t_s
@@ -254,24 +277,39 @@ class SimCore:
         return None
 
     def reject(self, reason: str) -> None:
-        """The pipeline could not verify a path for the newest scan: brake rather than drive on.
+        """Brake rather than drive on the path: a stage is down, or newer obstacles cross the path."""
+        self.path = None
+        self.no_path_reason = reason
+
+    def no_plan(self, reason: str) -> None:
+        """The pipeline answered the newest scan without a path the car can drive: brake, and count
+        the time towards backing out or giving up.
 
         The previous path was verified against older obstacles; a replan that fails verification
         usually means the newest ones invalidate it, so it is never driven on after such an answer.
         """
-        self.path = None
-        self.no_path_reason = reason
+        if self.backout is not None:
+            return  # it answers a scan from before the back-out
+        self.reject(reason)
+        if self.no_path_since_s is None:
+            self.no_path_since_s = self.t_s
 
     @property
     def replans(self) -> int:
         return max(0, len(self.plan_ids) - 1)
 
     def advance(self) -> Outcome | None:
-        """Integrate one step: follow a fresh path, else brake and hold the wheels; judge the outcome."""
+        """Integrate one step: back out, or follow a fresh path, else brake and hold the wheels; judge
+        the outcome."""
         if self.outcome is not None:
             return self.outcome
         fresh = self.path is not None and self.t_s - self.path_time_s <= self.config.stale_after_s
-        if fresh:
+        if self.backout is not None:
+            command = self.controller.reverse_command(self.state, path=self.backout,
+                                                      progress_m=self.backout_progress_m)
+            self.backout_progress_m = command.progress_m
+            target_speed, target_steering = command.target_speed_mps, command.target_steering_rad
+        elif fresh:
             command = self.controller.command(self.state, path=self.path, progress_m=self.progress_m)
             self.progress_m = command.progress_m
             target_speed, target_steering = command.target_speed_mps, command.target_steering_rad
@@ -280,22 +318,57 @@ class SimCore:
         self.state = step(self.state, limits=self.limits, target_speed_mps=target_speed,
                           target_steering_rad=target_steering, dt_s=self.config.dt_s)
         self.step_index += 1
-        if self.scan_due:
+        if self.backout is not None:
+            if target_speed == 0.0 and self.state.speed_mps == 0.0:  # backed out, at rest
+                del self.tracks[self.backout_keep:]
+                self.backout = None
+        elif math.dist(self.tracks[-1][:2], (self.state.x_m, self.state.y_m)) >= _TRACK_STEP_M:
+            self.tracks.append(self._pose())
+        if self.step_index % self.steps_per_scan == 0:
             self.scan_seq += 1
         self.trajectory.append(self._row())
         clearance = self.world.footprint_clearance(self.state)
         self.min_clearance_m = min(self.min_clearance_m, clearance)
-        self.goals.update(x_m=self.state.x_m, y_m=self.state.y_m)
+        if self.goals.update(x_m=self.state.x_m, y_m=self.state.y_m):
+            self.backouts = 0
         if clearance <= 0.0 or not self.world.footprint_in_bounds(self.state):
             self.outcome = "collision"
         elif self.goals.done:
             self.outcome = "reached"
-        elif (self.no_path_since_s is not None and self.state.speed_mps == 0.0
+        elif (self.no_path_since_s is not None and self.state.speed_mps == 0.0 and self.backout is None
+              and not self._back_out()
               and self.t_s - self.no_path_since_s >= self.config.no_path_patience_s):
             self.outcome = "no_path"
         elif self.t_s >= self.time_limit_s:
             self.outcome = "timeout"
         return self.outcome
+
+    def _back_out(self) -> bool:
+        """Start backing out along the tracks, `backout_m` or as far as they go; whether it started.
+
+        Not without tracks to back along (at least `_TRACK_STEP_M`), past `max_backouts` for this goal,
+        or when the guard finds the tracks entering one of the newest ellipses.
+        """
+        if self.backouts >= self.config.max_backouts or len(self.tracks) < 2:
+            return False
+        poses = np.array([self._pose(), *self.tracks[::-1]])
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))])
+        end = min(int(np.searchsorted(along, self.backout_m)), len(poses) - 1)
+        position = poses[0, :2]
+        reason = self.guard.check(poses[: end + 1, :2], start=position)
+        if reason is not None:
+            logger.info("not backing out: the tracks behind the car are no longer clear: %s", reason)
+            return False
+        half = 0.5 * self.limits.wheelbase_m
+        theta = poses[: end + 1, 2]
+        self.backout = poses[: end + 1, :2] - half * np.column_stack([np.cos(theta), np.sin(theta)])
+        self.backout_progress_m = None
+        self.backout_keep = len(self.tracks) - end + 1  # the pose backed out to stays, the rest goes
+        self.backouts += 1
+        self.no_path_since_s = None
+        logger.info("backing out %.2f m along its tracks (%d of %d for this goal): %s", along[end],
+                    self.backouts, self.config.max_backouts, self.no_path_reason)
+        return True
 
     def result(self, *, latencies_ms: list[float]) -> RunFile:
         lat = np.asarray(latencies_ms, dtype=float)
@@ -522,6 +595,9 @@ _ANSWER_RING = 256
 def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event: threading.Event,
                    timeout_s: float) -> None:
     while core.outcome is None and not stop_event.is_set():
+        if not core.scan_due:  # backing out, with no scan to wait for; or back in step with the sensor after it
+            core.advance()
+            continue
         seq = core.scan_seq
         publish_tick()
         stamp = core.t_s
@@ -542,7 +618,7 @@ def _lockstep_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
             answers.drain_statuses()
             reasons = [reason for s, reason in answers.rejected.items() if abs(s - stamp) <= 1e-9]
             if reasons:
-                core.reject(reasons[0])  # no verified path for what the car now knows: brake
+                core.no_plan(reasons[0])  # no verified path for what the car now knows: brake
                 answered = True
                 break
             rejoined = time.monotonic() - answers.back_at < _REJOIN_RESEND_S
@@ -584,7 +660,7 @@ def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
         if concerning:
             # A stage could not verify a path for a scan the car sent: brake until a verified one
             # arrives. Errors about anything else (a malformed message on a key) leave the plan in force.
-            core.reject(concerning[0])
+            core.no_plan(concerning[0])
         answers.rejected.clear()
         wake = started + (core.step_index + 1) * core.config.dt_s
         stop_event.wait(max(0.0, wake - time.monotonic()))

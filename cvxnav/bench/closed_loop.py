@@ -83,7 +83,7 @@ def run_closed_loop(scenario: Scenario, *, reference_m: float | None = None,
                 try:
                     outputs = stages[name].process(topic=topic, message=message, now_s=state.header.stamp_s)
                 except StageInputError as error:
-                    core.reject(f"{name}: {error}")
+                    core.no_plan(f"{name}: {error}")
                     outputs = []
                 samples[name].append((time.perf_counter() - stage_started) * 1e3)
                 if not outputs:

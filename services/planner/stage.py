@@ -11,7 +11,8 @@ curve of a new plan would fail verification, the plan is re-optimised with wider
 repairs as `cvxnav plan`), so the smoother downstream is handed a path it can accept. A car that
 newly grown covers have boxed in, with no turn left inside the full margin, plans with the margin
 within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it;
-boxed in even there, it gets `no_path` with that reason.
+boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
+tracks (`sim.service`): the planner plans forward motion only.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
@@ -57,8 +58,8 @@ _REPAIR_MIN_LEVEL = 0.5
 # A repair that has not met the curvature bound in this many solves gives way to the next margin or
 # to a replan (field-25: 8–9 solves, about 90 ms, on repairs that then failed verification).
 _REPAIR_ITERATIONS_UNMET = 4
-_BOXED_IN = ("boxed in: every turn the car can make from here crosses an obstacle, even with the margin near it "
-             "given up to the hard floor, and the car does not reverse")
+_BOXED_IN = ("boxed in: every forward turn the car can make from here crosses an obstacle, even with the margin "
+             "near it given up to the hard floor")
 
 
 @dataclass(frozen=True)

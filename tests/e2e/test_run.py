@@ -59,12 +59,14 @@ def assert_car_like_and_clear(run: RunFile, scenario) -> None:
     centre_factor = math.sqrt(1.0 + math.tan(scenario.robot.max_steering_angle) ** 2 / 4.0)
     assert np.max(ds / dt) <= scenario.robot.max_speed * centre_factor + 1e-9
     moving = ds > 1e-3
-    # Heading follows the motion. The footprint centre sits L/2 ahead of the rear axle, so it side-slips
-    # by β = atan(tan δ / 2) in a turn: the chord direction stays within that of the mean heading.
+    # Heading follows the motion, forwards or (backing out of a dead end) straight back. The footprint
+    # centre sits L/2 ahead of the rear axle, so it side-slips by β = atan(tan δ / 2) in a turn: the chord
+    # direction stays within that of the mean heading, or of its reverse.
     chord = np.arctan2(step[moving, 1], step[moving, 0])
     mean_heading = theta[:-1][moving] + 0.5 * np.angle(np.exp(1j * (theta[1:] - theta[:-1])))[moving]
     max_slip = math.atan(0.5 * math.tan(scenario.robot.max_steering_angle))
-    assert np.max(np.abs(np.angle(np.exp(1j * (chord - mean_heading))))) <= max_slip + 0.01
+    slip = np.abs(np.angle(np.exp(1j * (chord - mean_heading))))
+    assert np.max(np.minimum(slip, math.pi - slip)) <= max_slip + 0.01
     # Curvature of the centre's track ≤ tan(δ_max)/L (the centre turns on a larger radius than the axle).
     dtheta = np.abs(np.angle(np.exp(1j * np.diff(theta))))
     kappa = dtheta[moving] / ds[moving]
@@ -119,6 +121,38 @@ def test_enclosed_goal_ends_with_no_path_and_no_collision(tmp_path):
     assert run.status == "no_path" and run.goals_reached == 0
     assert run.min_clearance > 0.0
     assert run.trajectory[-1][0] < 30.0  # it gave up, it did not run into the time limit
+
+
+def _dead_end_scenario(tmp_path: Path) -> Path:
+    """A corridor straight ahead, 2 m wide, whose far end is closed; the goal lies beyond it. The car
+    enters it before its end wall comes into sensor range (5 m), and cannot turn round inside."""
+    doc = json.loads(PAPER.model_dump_json())
+    walls = [[[3.0, 1.0], [9.2, 1.0], [9.2, 1.2], [3.0, 1.2]],
+             [[3.0, -1.2], [9.2, -1.2], [9.2, -1.0], [3.0, -1.0]],
+             [[9.0, -1.0], [9.2, -1.0], [9.2, 1.0], [9.0, 1.0]]]
+    doc.update(name="dead-end", start={"x": -6.0, "y": 0.0, "theta": 0.0}, goals=[[14.0, 0.0]],
+               bounds={"min": [-8, -7], "max": [17, 7]}, obstacles=[{"type": "polygon", "vertices": w} for w in walls],
+               expect="reach")
+    path = tmp_path / "dead-end.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_a_car_in_a_dead_end_backs_out_along_its_tracks_and_reaches_the_goal(tmp_path):
+    scenario = load_scenario(_dead_end_scenario(tmp_path))
+    proc = cvxnav_run(str(tmp_path / "dead-end.json"), "--out", "run.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = RunFile.read(tmp_path / "run.json")
+    assert run.status == "reached" and run.goals_reached == 1
+    assert_car_like_and_clear(run, scenario)
+    traj = np.array(run.trajectory)
+    step = np.diff(traj[:, 1:3], axis=0)
+    along = np.einsum("ij,ij->i", step, np.column_stack([np.cos(traj[:-1, 3]), np.sin(traj[:-1, 3])]))
+    assert np.sum(-along[along < 0.0]) > 3.0  # it backed out, one turning radius or more ...
+    x, y = traj[:, 1], traj[:, 2]
+    inside = np.flatnonzero((x > 3.5) & (np.abs(y) < 1.0))
+    beside = np.flatnonzero((x > 3.0) & (x < 9.2) & (np.abs(y) > 1.2))
+    assert inside.size and beside.size and inside[0] < beside[0]  # ... from inside the corridor, then went round it
 
 
 def _detour_scenario(tmp_path: Path) -> Path:

@@ -1,4 +1,5 @@
-"""The sim's watchdogs: it brakes when a stage's token disappears, and never drives a path through a known obstacle."""
+"""The sim's watchdogs: it brakes when a stage's token disappears, never drives a path through a known
+obstacle, backs out of a dead end along its tracks, and gives up rather than wait for ever."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import re
 from dataclasses import replace
 
 import numpy as np
+import pytest
+from shapely.geometry import LineString, Point
 
 from cvxnav.geometry import Ellipse
 from schemas.messages import Ellipsoids, Header, SmoothPath
@@ -110,7 +113,7 @@ def test_a_path_through_a_known_ellipse_is_not_driven_and_says_why():
     assert reason is not None and "cluster 7" in reason
     x, y = map(float, re.search(r"near \(([-\d.]+), ([-\d.]+)\)", reason).groups())
     assert abs(x - 8.0) <= 0.1 and y == 0.0
-    assert max(drive(core, 40)) == 0.0
+    assert max(drive(core, 20)) == 0.0  # at rest, short of giving up (`no_path_patience_s`)
 
     around = [(0.0, 0.0), (4.0, 0.0), (8.0, 3.0), (12.0, 0.0), (20.0, 0.0)]
     core.sense()
@@ -136,3 +139,82 @@ def test_the_guard_lets_a_robot_inside_a_grown_ellipse_leave_it_but_not_go_deepe
     assert guard.check([(3.0, 0.0), (3.0, 5.0)], start=(3.0, 0.0)) is None
     assert guard.check([(3.0, -3.0), (3.0, 3.0), (1.9, 3.0)], start=(3.0, -3.0)) is None
     assert guard.check([(-3.0, 0.5), (3.0, 0.5)], start=(-3.0, 0.5)) is not None  # a chord through it
+
+
+def no_path(core: SimCore) -> SmoothPath:
+    """The pipeline's answer to the newest scan: no path."""
+    return SmoothPath(header=Header(stamp_s=core.t_s, seq=0), scan_seq=core.scan_seq, status="no_path", goal_index=0,
+                      points=[], max_curvature=0.0, min_level=0.0, reason="boxed in")
+
+
+def until_rest(core: SimCore, limit: int = 400) -> None:
+    for _ in range(limit):
+        core.advance()
+        if core.state.speed_mps == 0.0:
+            return
+    raise AssertionError("the car did not come to rest")
+
+
+def test_a_car_without_a_drivable_answer_backs_out_along_its_tracks_then_gives_up():
+    config = SimConfig(stale_after_s=100.0)
+    core = SimCore(scenario=open_field(), config=config)
+    core.sense()
+    core.accept(path(core, [(0.0, 0.0), (4.0, 0.0), (8.0, 3.0), (12.0, 0.0), (20.0, 0.0)]))
+    drive(core, 300)  # past the bend
+    assert core.state.speed_mps > 0.5 and core.backout_m == pytest.approx(core.limits.min_turn_radius_m)
+    stops = []
+    for backout in range(1, config.max_backouts + 1):
+        core.sense()
+        core.accept(no_path(core))
+        until_rest(core)  # brakes ...
+        assert core.backing_out
+        tracks = LineString([*(p[:2] for p in core.tracks), (core.state.x_m, core.state.y_m)])
+        scans, backed_m = 0, 0.0
+        while core.backing_out:
+            scans += core.scan_due
+            before = (core.state.x_m, core.state.y_m)
+            core.advance()
+            backed_m += math.dist(before, (core.state.x_m, core.state.y_m))
+            assert core.state.speed_mps <= 0.0
+            # Within 5 cm: pursuit cuts the bends the car drove forward at full lock by a few cm.
+            assert tracks.distance(Point(core.state.x_m, core.state.y_m)) < 0.05
+        assert scans == 0  # it does not ask the pipeline while it backs out
+        # ... backs out one turning radius along the tracks it drove ...
+        assert backed_m == pytest.approx(core.backout_m, abs=0.1)
+        assert core.outcome is None and core.backouts == backout
+        stops.append(core.state.x_m)
+        while not core.scan_due:
+            core.advance()
+    assert np.all(np.diff(stops) < 0.0)
+    core.sense()
+    core.accept(no_path(core))
+    until_rest(core)
+    assert not core.backing_out  # none left for this goal: it waits, then gives up
+    drive(core, round(config.no_path_patience_s / config.dt_s) + 1)
+    assert core.outcome == "no_path" and core.min_clearance_m > 0.0
+
+
+def test_a_car_backs_out_only_over_tracks_clear_of_the_newest_ellipses():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    core.accept(path(core, straight()))
+    drive(core, 60)
+    core.know(grown(center=(core.state.x_m - 1.0, 0.0), radius=0.5, scan_seq=1))  # on the tracks just behind
+    core.sense()
+    core.accept(no_path(core))
+    until_rest(core)
+    assert not core.backing_out
+    drive(core, 60)
+    assert core.outcome == "no_path"
+
+
+def test_stage_errors_for_every_scan_of_a_car_at_rest_end_the_run_instead_of_waiting_for_ever():
+    config = SimConfig()
+    core = SimCore(scenario=open_field(), config=config)
+    for _ in range(round(config.no_path_patience_s * 10) + 2):
+        core.sense()
+        core.no_plan("smoother: smoothed path rejected: curvature 52.1 exceeds the bound 1.079 1/m")
+        drive(core, core.steps_per_scan)
+        if core.outcome is not None:
+            break
+    assert core.outcome == "no_path" and "curvature" in core.no_path_reason
