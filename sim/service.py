@@ -153,7 +153,7 @@ class SimCore:
         self.plan_ids: list[int] = []
         self.guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
         self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
-        self.resume_seq = 0  # answers to earlier scans are not driven on: they predate a stage's loss
+        self.resume_seq = 0  # answers to earlier scans are not taken: they predate a stage's loss or a back-out
         self.scan_xy: dict[int, tuple[float, float]] = {}  # recent scans' positions, by seq
         self.unheard: dict[tuple[int, int], tuple[float, float]] = {}  # hits the sensing stage missed
         self.unheard_seq: int | None = None  # the first scan that carried them to a live sensing stage
@@ -366,6 +366,7 @@ class SimCore:
         self.backout_keep = len(self.tracks) - end + 1  # the pose backed out to stays, the rest goes
         self.backouts += 1
         self.no_path_since_s = None
+        self.resume_seq = self.scan_seq + 1  # a late answer (realtime) is for where the car was
         logger.info("backing out %.2f m along its tracks (%d of %d for this goal): %s", along[end],
                     self.backouts, self.config.max_backouts, self.no_path_reason)
         return True
@@ -655,11 +656,12 @@ def _realtime_loop(*, core: SimCore, answers: _Answers, publish_tick, stop_event
         if answer is not None:
             answers.take(core, answer)
         answers.drain_statuses()
-        published = set(answers.stamps.values())
+        published = {stamp for seq, stamp in answers.stamps.items() if seq >= core.resume_seq}
         concerning = [reason for stamp, reason in answers.rejected.items() if stamp in published]
         if concerning:
-            # A stage could not verify a path for a scan the car sent: brake until a verified one
-            # arrives. Errors about anything else (a malformed message on a key) leave the plan in force.
+            # A stage could not verify a path for a scan the car sent (since a stage's loss or its last
+            # back-out): brake until a verified one arrives. Errors about anything else (a malformed
+            # message on a key) leave the plan in force.
             core.no_plan(concerning[0])
         answers.rejected.clear()
         wake = started + (core.step_index + 1) * core.config.dt_s

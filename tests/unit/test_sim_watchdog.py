@@ -194,6 +194,26 @@ def test_a_car_without_a_drivable_answer_backs_out_along_its_tracks_then_gives_u
     assert core.outcome == "no_path" and core.min_clearance_m > 0.0
 
 
+def test_a_late_answer_to_a_scan_from_before_a_back_out_is_not_taken():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    core.accept(path(core, straight()))
+    drive(core, 100)
+    core.sense()
+    stuck = no_path(core)
+    core.accept(stuck)
+    until_rest(core)
+    while core.backing_out:
+        core.advance()
+    # Planned from where the car stood before backing out (realtime: the planner was still at it).
+    late = path(core, straight(core.state.x_m + 2.0)).model_copy(update={"scan_seq": stuck.scan_seq})
+    core.accept(late)
+    core.accept(stuck)
+    assert core.path is None and core.no_path_since_s is None and core.backouts == 1
+    core.sense()
+    assert core.accept(path(core, straight(core.state.x_m))) is None and core.path is not None
+
+
 def test_a_car_backs_out_only_over_tracks_clear_of_the_newest_ellipses():
     core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
     core.sense()
