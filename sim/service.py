@@ -15,14 +15,14 @@ answers and integrates the car. `run_sim` is the Zenoh shell around it, in one o
 
 Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
 When the pipeline answers a scan without a path it can drive (no_path, or a stage's error for that
-scan) and the car is at rest, the car backs out along its own tracks, one turning radius at a time and
-at most `max_backouts` times per goal, scanning again after each. A car can drive into a dead end before it has
-seen that it is one: in a dense field it then has no forward turn left inside the margins (a closed
-loop in a 60-obstacle field stood still there for good; 4 m back along its tracks a plan verified).
-It backs out only over ground it has driven, and only when the guard finds those tracks clear of the
-newest ellipses; it does not scan meanwhile (the sensor faces the dead end it is leaving), so lockstep
-runs stay deterministic. Without tracks or backouts left, such answers for `no_path_patience_s` with
-the car at rest end the run as no_path.
+scan) and the car is at rest, the car backs out along its own tracks, one turning radius at a time
+and at most `max_backouts` times per goal, scanning again after each. A car can drive into a dead end
+before it has seen that it is one: in a dense field it then has no forward turn left inside the
+margins (a closed loop in a 60-obstacle field stood still there for good; 4 m back along its tracks a
+plan verified). It backs out only over ground it has driven, and only when the guard finds those
+tracks clear of the newest ellipses; it does not scan meanwhile (the sensor faces the dead end it is
+leaving), so lockstep runs stay deterministic. With no tracks or back-outs left, such answers for
+`no_path_patience_s` with the car at rest end the run as no_path.
 A smooth_path it cannot use (oversize, undecodable, or answering a scan it never sent) is ignored and
 reported on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input.
 Two watchdogs add to that:
@@ -108,9 +108,11 @@ class SimConfig:
     dt_s: float = 0.05  # integration step (one trajectory row each)
     time_limit_s: float | None = None  # sim time; None: default_time_limit_s(scenario)
     stale_after_s: float = 1.5  # a path older than this (sim time) is not driven on
-    no_path_patience_s: float = 2.0  # no_path this long with the car stopped ends the run
-    backout_m: float | None = None  # how far the car backs out along its tracks at a time (None: one
-    max_backouts: int = 3  # minimum turning radius, the room a turn takes) ... and how often per goal
+    no_path_patience_s: float = 2.0  # no drivable path this long, at rest with no back-out left: the run ends
+    # How far the car backs out along its tracks at a time (None: one minimum turning radius, the room a
+    # turn takes), and how often per goal.
+    backout_m: float | None = None
+    max_backouts: int = 3
     noise_std_m: float = 0.0  # range noise, drawn from a generator seeded with `seed`
     seed: int = 0
     answer_timeout_s: float = 10.0  # lockstep: wall time to wait for the answer to a scan
