@@ -105,12 +105,16 @@ class PlannerConfig:
         )
 
 
-def trim_to_robot(points: FloatArray, *, position: FloatArray) -> tuple[FloatArray, float]:
-    """The plan from the vertex that starts the segment nearest the robot; and the robot's distance to it.
+def trim_to_robot(points: FloatArray, *, position: FloatArray, heading_rad: float) -> tuple[FloatArray, float]:
+    """The plan from the vertex that starts the segment nearest the robot, among the segments that run
+    within 90° of its heading; and the robot's distance to it (inf when none does).
 
     Trimming at a vertex (not at the foot of the perpendicular) keeps the control polygon a suffix of
     the planned one: a foot just short of the next vertex would leave a tiny first control segment and
-    a clamped spline with a large curvature at its start.
+    a clamped spline with a large curvature at its start. A segment against the heading is never the
+    robot's place on the plan: a plan that comes back past where the car is (it backed out along its
+    tracks) would otherwise be trimmed to its way back, which the car cannot turn onto (a closed loop
+    in a dense field steered into an obstacle doing so).
     """
     if len(points) < 2:
         return points, float(np.linalg.norm(points[0] - position)) if len(points) else np.inf
@@ -119,6 +123,7 @@ def trim_to_robot(points: FloatArray, *, position: FloatArray) -> tuple[FloatArr
     ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
     u = np.clip(np.einsum("ij,ij->i", position - a, e) / ee, 0.0, 1.0)
     dist = np.linalg.norm(a + u[:, None] * e - position, axis=1)
+    dist[e @ np.array([np.cos(heading_rad), np.sin(heading_rad)]) <= 0.0] = np.inf
     k = int(np.argmin(dist))
     return points[k:], float(dist[k])
 
@@ -289,7 +294,8 @@ class PlannerStage:
         points: FloatArray | None = None
         if self.plan is not None and self.plan_goal_base == goal_base:
             used = relieved if self.plan_relieved and relieved is not None else ellipses
-            points = self._still_valid(position=position, goals=goals, ellipses=used)
+            points = self._still_valid(position=position, heading_rad=state.pose.theta_rad, goals=goals,
+                                       ellipses=used)
         status, reason = "ok", ""
         if points is None and self.plan is not None and self.plan_goal_base == goal_base:
             repaired = self._repair(position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=used,
@@ -368,7 +374,7 @@ class PlannerStage:
         """
         config = self.config
         assert self.plan is not None
-        trimmed, off_m = trim_to_robot(self.plan, position=position)
+        trimmed, off_m = trim_to_robot(self.plan, position=position, heading_rad=heading_rad)
         if off_m > config.max_cross_track_m or len(trimmed) < 3:
             return None
         ahead = np.vstack([position, trimmed[1:]])
@@ -417,7 +423,8 @@ class PlannerStage:
                 return points, margin
         return None
 
-    def _still_valid(self, *, position: FloatArray, goals: FloatArray, ellipses: list[Ellipse]) -> FloatArray | None:
+    def _still_valid(self, *, position: FloatArray, heading_rad: float, goals: FloatArray,
+                     ellipses: list[Ellipse]) -> FloatArray | None:
         """The current plan trimmed to the robot, if it is still clear and still smooths; else None.
 
         A suffix's clamped spline starts with a different curvature from the full plan's curve at the
@@ -427,7 +434,7 @@ class PlannerStage:
         """
         assert self.plan is not None
         config = self.config
-        trimmed, off_m = trim_to_robot(self.plan, position=position)
+        trimmed, off_m = trim_to_robot(self.plan, position=position, heading_rad=heading_rad)
         if off_m > config.max_cross_track_m or len(intersected(np.vstack([position, trimmed]), ellipses)):
             return None
         cut = len(self.plan) - len(trimmed)

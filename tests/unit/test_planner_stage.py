@@ -7,13 +7,14 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
 from services.convert import ellipse_to_msg, ellipses_from_msgs
 from services.planner.core import plan_until_verified
-from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap
+from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap, trim_to_robot
 from services.smoother.core import smooth
 from services.smoother.stage import SmootherStage
 from sim.guard import PathGuard
@@ -160,3 +161,17 @@ def test_a_path_between_two_grouped_obstacles_crosses_a_closed_gap_but_one_round
         assert not crosses_closed_gap(between, ellipses, entered=entered, groups=np.array(groups),
                                       clusters=np.array(clusters))
     assert not crosses_closed_gap(between, ellipses, entered=np.array([], dtype=int), **grouped)
+
+
+def test_the_robot_is_placed_on_the_stretch_of_the_plan_it_faces():
+    """A plan out and back past the robot (it backed out along its tracks): the way back lies nearer, but
+    runs against the heading, so the plan is trimmed to the way out; facing the other way, to the way back."""
+    out = np.column_stack([np.linspace(0.0, 5.0, 51), np.zeros(51)])
+    back = np.column_stack([np.linspace(5.0, 0.0, 51), np.full(51, 0.2)])
+    plan = np.vstack([out, back])
+    trimmed, off_m = trim_to_robot(plan, position=np.array([2.05, 0.15]), heading_rad=0.0)
+    assert len(trimmed) == len(plan) - 20 and off_m == pytest.approx(0.15)
+    trimmed, off_m = trim_to_robot(plan, position=np.array([2.05, 0.15]), heading_rad=np.pi)
+    assert trimmed[0][1] == 0.2 and off_m == pytest.approx(0.05)
+    _, off_m = trim_to_robot(out, position=np.array([2.05, 0.0]), heading_rad=np.pi)
+    assert off_m == np.inf  # nothing of it runs the robot's way: off the plan, replan
