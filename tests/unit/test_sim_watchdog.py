@@ -160,8 +160,8 @@ def test_a_car_without_a_drivable_answer_backs_out_along_its_tracks_then_gives_u
     core = SimCore(scenario=open_field(), config=config)
     core.sense()
     core.accept(path(core, [(0.0, 0.0), (4.0, 0.0), (8.0, 3.0), (12.0, 0.0), (20.0, 0.0)]))
-    drive(core, 300)  # past the bend
-    assert core.state.speed_mps > 0.5 and core.backout_m == pytest.approx(core.limits.min_turn_radius_m)
+    drive(core, 380)  # past the bend, with tracks for every back-out
+    assert core.state.speed_mps > 0.5 and core.backout_m == pytest.approx(0.6 + core.limits.min_turn_radius_m)
     stops = []
     for backout in range(1, config.max_backouts + 1):
         core.sense()
@@ -179,7 +179,7 @@ def test_a_car_without_a_drivable_answer_backs_out_along_its_tracks_then_gives_u
             # Within 5 cm: pursuit cuts the bends the car drove forward at full lock by a few cm.
             assert tracks.distance(Point(core.state.x_m, core.state.y_m)) < 0.05
         assert scans == 0  # it does not ask the pipeline while it backs out
-        # ... backs out one turning radius along the tracks it drove ...
+        # ... backs out its length plus one turning radius along the tracks it drove ...
         assert backed_m == pytest.approx(core.backout_m, abs=0.1)
         assert core.outcome is None and core.backouts == backout
         stops.append(core.state.x_m)
@@ -214,20 +214,6 @@ def test_a_late_answer_to_a_scan_from_before_a_back_out_is_not_taken():
     assert core.accept(path(core, straight(core.state.x_m))) is None and core.path is not None
 
 
-def test_a_car_backs_out_only_over_tracks_clear_of_the_newest_ellipses():
-    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
-    core.sense()
-    core.accept(path(core, straight()))
-    drive(core, 60)
-    core.know(grown(center=(core.state.x_m - 1.0, 0.0), radius=0.5, scan_seq=1))  # on the tracks just behind
-    core.sense()
-    core.accept(no_path(core))
-    until_rest(core)
-    assert not core.backing_out
-    drive(core, 60)
-    assert core.outcome == "no_path"
-
-
 def test_stage_errors_for_every_scan_of_a_car_at_rest_end_the_run_instead_of_waiting_for_ever():
     config = SimConfig()
     core = SimCore(scenario=open_field(), config=config)
@@ -238,3 +224,10 @@ def test_stage_errors_for_every_scan_of_a_car_at_rest_end_the_run_instead_of_wai
         if core.outcome is not None:
             break
     assert core.outcome == "no_path" and "curvature" in core.no_path_reason
+
+
+def test_a_path_that_starts_against_the_heading_is_not_driven():
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    reason = core.accept(path(core, straight(0.0, -10.0)))
+    assert reason == "the path starts against the car's heading" and core.path is None
