@@ -400,6 +400,8 @@ class _Arcs:
         cut_arcs = self.arc_first[self.owner] + np.arange(len(self.owner)) - self.first[self.owner]
         coverage[cut_arcs] += running
         self.free = (coverage == 0) & np.repeat(covered, arcs_of)
+        # Ellipses with a free arc somewhere: only they can hold a tangent point of the graph.
+        self.has_free = np.logical_or.reduceat(self.free, self.arc_first) if m else np.zeros(0, dtype=bool)
 
     def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
@@ -438,8 +440,10 @@ def _arc_polyline(frames: _Frames, owner: int, start: float, span: float) -> Flo
 class _TangentGraph:
     """The tangent graph, built within the legs' informed ellipses and grown as their bounds widen.
 
-    Tangents, cuts and segment tests do not depend on the bound, so each is computed once: a wider
-    bound only adds the pairs, ellipses and segments it newly lets in.
+    Tangents, cuts, free arcs and segment tests do not depend on the bound, so each is computed once:
+    a wider bound only adds the pairs, ellipses and segments it newly lets in. A pair is given tangents
+    only when both ellipses have a free arc: a tangent point anywhere else is dropped (in a wall of
+    overlapping ellipses, about half of them lie wholly inside the others).
     """
 
     def __init__(self, *, frames: _Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max) -> None:
@@ -448,6 +452,7 @@ class _TangentGraph:
         m, t = len(frames.A), len(terminals)
         self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
         self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
+        self.arcs = _Arcs(frames, self.cuts, self.covered, bounds_min, bounds_max)
         self.pair_done = np.zeros(0, dtype=np.int64)  # sorted keys i·m + j of the pairs with tangents
         kk, ee = np.meshgrid(np.arange(t), np.arange(m), indexing="ij")
         tk, tl = np.triu_indices(t, k=1)
@@ -482,6 +487,8 @@ class _TangentGraph:
             parts = _cuts(frames, self.stack, self.bounds_min, self.bounds_max, new)
             self.cuts = tuple(np.concatenate([old, part]) for old, part in zip(self.cuts, parts))
             self.covered[new] = True
+            self.arcs = _Arcs(frames, self.cuts, self.covered, self.bounds_min, self.bounds_max)
+        relevant = relevant[self.arcs.has_free[relevant]]
         # Pairs none of whose tangents fits a leg: a path through p ∈ i and q ∈ j is at least
         # ‖from − cᵢ‖ − rᵢ + gap(discs) + ‖cⱼ − to‖ − rⱼ long (either way round).
         ii, jj = np.triu_indices(len(relevant), k=1)
@@ -501,7 +508,7 @@ class _TangentGraph:
         """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
         self._grow(bound)
         frames, t = self.frames, len(self.terminals)
-        arcs = _Arcs(frames, self.cuts, self.covered, self.bounds_min, self.bounds_max)
+        arcs = self.arcs
         all_seg = self.segments
         length_all = np.linalg.norm(all_seg.q - all_seg.p, axis=1)
         pick = np.flatnonzero((self.status != 2) & self._informed(bound, all_seg.p, length_all, all_seg.q))
