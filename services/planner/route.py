@@ -241,8 +241,9 @@ class _Segments:
         return _Segments(self.p[keep], self.q[keep], self.owner_p[keep], self.owner_q[keep], self.theta_p[keep], self.theta_q[keep])
 
 
-def _pair_tangents(frames: _Frames, i: FloatArray, j: FloatArray) -> _Segments:
-    """Every common tangent of the ellipse pairs (i, j)."""
+def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -> _Segments:
+    """The common tangents of the ellipse pairs (i, j), but for those whose angle window on i (a pair
+    clear of each other has one tangent of each sign in each of two windows) holds no free arc of i."""
     Q = np.einsum("kij,klj->kil", frames.Ainv[j], frames.Ainv[j])  # j's shape matrix
     c = np.einsum("kij,kj->ki", frames.A[i], frames.centers[j]) + frames.b[i]  # j's centre in i's frame
     S = np.einsum("kij,kjl,kml->kim", frames.A[i], Q, frames.A[i])  # j's shape in i's frame
@@ -258,9 +259,10 @@ def _pair_tangents(frames: _Frames, i: FloatArray, j: FloatArray) -> _Segments:
         a2 = np.arccos(np.clip((1.0 - rho[f]) / D[f], -1.0, 1.0)) + 1e-7
         for sign in (1.0, -1.0):
             for lo, hi in ((phi + a1, phi + a2), (phi - a2, phi - a1)):
-                thetas.append(_window_roots(D[f], phi, S[f], sign, lo, hi))
-                signs.append(np.full(len(f), sign))
-                rows.append(f)
+                w = np.flatnonzero(arcs.meets_free(i[f], lo, hi))
+                thetas.append(_window_roots(D[f[w]], phi[w], S[f[w]], sign, lo[w], hi[w]))
+                signs.append(np.full(len(w), sign))
+                rows.append(f[w])
     n_ = np.flatnonzero(~far)
     if len(n_):
         cc = c[n_]
@@ -402,14 +404,38 @@ class _Arcs:
         self.free = (coverage == 0) & np.repeat(covered, arcs_of)
         # Ellipses with a free arc somewhere: only they can hold a tangent point of the graph.
         self.has_free = np.logical_or.reduceat(self.free, self.arc_first) if m else np.zeros(0, dtype=bool)
+        self._free_before = np.concatenate([[0], np.cumsum(self.free)])  # free arcs before each arc id
+        self._keys = self.owner * 8.0 + self.theta
+
+    def _cuts_upto(self, owner: FloatArray, theta: FloatArray) -> FloatArray:
+        """How many of each ellipse's cuts lie at angles ≤ θ (θ ∈ [0, 2π))."""
+        if not len(self.theta):
+            return np.zeros(len(owner), dtype=int)
+        return np.searchsorted(self._keys, owner * 8.0 + theta, side="right") - self.first[owner]
+
+    def meets_free(self, owner: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+        """Whether the angle window [lo, hi] (hi − lo < 2π) on each ellipse `owner` may hold a point
+        that `locate` puts on a free arc: the window covers the arc at lo and one more per cut in
+        (lo, hi]. Widened by 1e-9 rad either way, so that rounding can only keep a window."""
+        start = np.mod(lo - 1e-9, 2.0 * np.pi)
+        end = start + (hi - lo) + 2e-9
+        count = self.count[owner]
+        at_start = self._cuts_upto(owner, start)
+        beyond = end >= 2.0 * np.pi
+        at_end = np.where(beyond, count + self._cuts_upto(owner, np.where(beyond, end - 2.0 * np.pi, end)),
+                          self._cuts_upto(owner, end))
+        k = np.maximum(count, 1)
+        first_arc = np.where(count > 0, (at_start - 1) % k, 0)  # local index of the arc at `start`
+        last_arc = first_arc + at_end - at_start  # inclusive, may pass the last arc (wrapping round)
+        base = self.arc_first[owner]
+        within = self._free_before[base + np.minimum(last_arc, k - 1) + 1] - self._free_before[base + first_arc]
+        wrapped = self._free_before[base + np.clip(last_arc - k, -1, k - 1) + 1] - self._free_before[base]
+        return np.where(last_arc - first_arc >= k - 1, self.has_free[owner], (within + wrapped) > 0)
 
     def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
         count = self.count[owner]
-        r = np.zeros(len(owner), dtype=int)
-        if len(self.theta):
-            key_cuts = self.owner * 8.0 + self.theta
-            r = np.searchsorted(key_cuts, owner * 8.0 + theta, side="right") - self.first[owner]
+        r = self._cuts_upto(owner, theta)
         wrap = (count > 0) & (r == 0)
         local = np.where(count > 0, (r - 1) % np.maximum(count, 1), 0)
         unwrapped = np.where(wrap, theta + 2.0 * np.pi, theta)
@@ -499,7 +525,7 @@ class _TangentGraph:
         keys = ii.astype(np.int64) * m + jj
         fresh = ~np.isin(keys, self.pair_done, assume_unique=True)
         if np.any(fresh):
-            added = _pair_tangents(frames, ii[fresh], jj[fresh])
+            added = _pair_tangents(frames, self.arcs, ii[fresh], jj[fresh])
             self.segments = _Segments.concat([self.segments, added])
             self.status = np.concatenate([self.status, np.zeros(len(added.p), dtype=np.int8)])
             self.pair_done = np.union1d(self.pair_done, keys[fresh])
