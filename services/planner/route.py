@@ -202,16 +202,16 @@ def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def _window_roots(
-    D: FloatArray, phi: FloatArray, S: FloatArray, sign: float, lo: FloatArray, hi: FloatArray
+    D: FloatArray, phi: FloatArray, S: FloatArray, sign: FloatArray, lo: FloatArray, hi: FloatArray
 ) -> FloatArray:
-    """The root of g(θ) = D cos(θ − φ) − 1 + sign·√(nᵀSn) bracketed by [lo, hi]."""
+    """The root of g(θ) = D cos(θ − φ) − 1 + sign·√(nᵀSn) bracketed by [lo, hi] (sign ±1 each)."""
     s11, s12, s22 = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
 
     def g(theta, k):
         c, s = np.cos(theta), np.sin(theta)
         h = np.sqrt(s11[k] * c * c + 2.0 * s12[k] * c * s + s22[k] * s * s)
         dh = ((s22[k] - s11[k]) * c * s + s12[k] * (c * c - s * s)) / h
-        return D[k] * np.cos(theta - phi[k]) - 1.0 + sign * h, -D[k] * np.sin(theta - phi[k]) + sign * dh
+        return D[k] * np.cos(theta - phi[k]) - 1.0 + sign[k] * h, -D[k] * np.sin(theta - phi[k]) + sign[k] * dh
 
     # Start from the root for a circle of j's radius √(nᵀSn) at the window's middle: Newton then
     # needs about three steps.
@@ -257,12 +257,16 @@ def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -
         # Widened a little: for a circle (√(nᵀSn) = ρ everywhere) the roots sit exactly at the ends.
         a1 = np.arccos(np.clip((1.0 + rho[f]) / D[f], -1.0, 1.0)) - 1e-7
         a2 = np.arccos(np.clip((1.0 - rho[f]) / D[f], -1.0, 1.0)) + 1e-7
-        for sign in (1.0, -1.0):
-            for lo, hi in ((phi + a1, phi + a2), (phi - a2, phi - a1)):
-                w = np.flatnonzero(arcs.meets_free(i[f], lo, hi))
-                thetas.append(_window_roots(D[f[w]], phi[w], S[f[w]], sign, lo[w], hi[w]))
-                signs.append(np.full(len(w), sign))
-                rows.append(f[w])
+        # The four windows (outer tangents, sign +1, then inner, −1; each either side of the centre
+        # line), solved in one batch.
+        sign = np.repeat([1.0, 1.0, -1.0, -1.0], len(f))
+        lo = np.concatenate([phi + a1, phi - a2] * 2)
+        hi = np.concatenate([phi + a2, phi - a1] * 2)
+        w = np.flatnonzero(arcs.meets_free(i[np.tile(f, 4)], lo, hi))
+        row = np.tile(f, 4)[w]
+        thetas.append(_window_roots(D[row], np.tile(phi, 4)[w], S[row], sign[w], lo[w], hi[w]))
+        signs.append(sign[w])
+        rows.append(row)
     n_ = np.flatnonzero(~far)
     if len(n_):
         cc = c[n_]
