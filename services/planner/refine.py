@@ -369,7 +369,7 @@ def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[
 
 
 def _linearise(
-    z: FloatArray, stack: EllipseStack, centers: FloatArray, reach: FloatArray, *, slots: int, level: FloatArray, trust_m: float
+    z: FloatArray, stack: EllipseStack, *, slots: int, level: FloatArray, trust_m: float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Half-planes nᵀ(A z + b) ≥ levelᵢ at each point for its nearest ellipses (unused slots: 0 ≥ −1)."""
     n = len(z)
@@ -379,7 +379,7 @@ def _linearise(
     if len(stack) == 0:
         return gx, gy, h
     # Lower bound on the Euclidean distance to each ellipse: centre distance minus largest semi-axis.
-    near = np.linalg.norm(z[:, None, :] - centers[None, :, :], axis=2) - reach[None, :]
+    near = np.linalg.norm(z[:, None, :] - stack.centers[None, :, :], axis=2) - stack.reach[None, :]
     k = min(slots, len(stack))
     order = np.argsort(near, axis=1)[:, :k]
     within = np.zeros((n, slots), dtype=bool)
@@ -420,8 +420,6 @@ def refine(
     n = _bucket(int(np.ceil(total / settings.spacing_m)) + 1)
     z, goal_indices = resample_legs(legs, n=n)
     stack = EllipseStack.of(ellipses)
-    centers = np.array([e.center for e in ellipses]).reshape(-1, 2)
-    reach = np.array([e.semi_axes[0] for e in ellipses])
     problem = _problem(
         settings.backend, n, settings.slots, 1 + len(goal_indices), settings.step_m, settings.slack_weight, settings.solver
     )
@@ -443,7 +441,7 @@ def refine(
     slack = np.zeros(n - 2)
     for iterations in range(1, settings.max_iterations + 1):
         gx, gy, h = _linearise(
-            z, stack, centers, reach, slots=settings.slots, level=level, trust_m=settings.trust_region_m
+            z, stack, slots=settings.slots, level=level, trust_m=settings.trust_region_m
         )
         delta = np.diff(z, axis=0)
         step = np.linalg.norm(delta, axis=1)
