@@ -191,14 +191,34 @@ class EllipseStack:
         u0 = np.einsum("kij,kj->ki", A, p[rows]) + self.b[cols]
         return _segment_minimum(u0, np.einsum("kij,kj->ki", A, q[rows] - p[rows]))
 
-    def near_pairs(self, centers: FloatArray, radii: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Pairs (i, j) where the disc (centers[i], radii[i]) meets ellipse j's bounding disc."""
+    def near_pairs(self, centers: FloatArray, radii: FloatArray, *, run: int = 1) -> tuple[FloatArray, FloatArray]:
+        """Pairs (i, j) where the disc (centers[i], radii[i]) meets ellipse j's bounding disc, by row
+        then column.
+
+        With `run` > 1 the KD-tree is asked once per `run` consecutive discs, for the disc that bounds
+        them, and each of them is then tested against the ellipses found: the same pairs, far fewer
+        queries when consecutive discs lie close together (the samples of a curve).
+        """
         if len(self) == 0 or len(centers) == 0:
             return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-        lists = self._tree.query_ball_point(centers, r=radii + self.reach.max())
+        if run > 1:
+            starts = np.arange(0, len(centers), run)
+            size = np.diff(np.append(starts, len(centers)))
+            middle = 0.5 * (np.minimum.reduceat(centers, starts) + np.maximum.reduceat(centers, starts))
+            around = np.linalg.norm(centers - np.repeat(middle, size, axis=0), axis=1) + radii
+            lists = self._tree.query_ball_point(middle, r=np.maximum.reduceat(around, starts) + self.reach.max())
+        else:
+            lists = self._tree.query_ball_point(centers, r=radii + self.reach.max())
         counts = np.fromiter(map(len, lists), dtype=int, count=len(lists))
-        rows = np.repeat(np.arange(len(centers)), counts)
         cols = np.fromiter(chain.from_iterable(lists), dtype=int, count=int(counts.sum()))
+        if run > 1:  # every disc of a run against every ellipse found for the run, row by row
+            pairs = size * counts
+            group = np.repeat(np.arange(len(lists)), pairs)
+            local = np.arange(len(group)) - np.repeat(np.cumsum(pairs) - pairs, pairs)
+            rows = starts[group] + local // counts[group]
+            cols = cols[(np.cumsum(counts) - counts)[group] + local % counts[group]]
+        else:
+            rows = np.repeat(np.arange(len(centers)), counts)
         close = np.linalg.norm(centers[rows] - self.centers[cols], axis=1) <= radii[rows] + self.reach[cols]
         return rows[close], cols[close]
 
@@ -211,28 +231,31 @@ class EllipseStack:
         np.minimum.at(out, rows, np.linalg.norm(u, axis=1))
         return out
 
-    def min_segment_levels(self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None) -> FloatArray:
+    def min_segment_levels(
+        self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None, run: int = 1
+    ) -> FloatArray:
         """min over ellipses of the eq. (2) segment level for each segment (+inf where none is near).
 
         `sag_m` optionally bounds how far the real curve strays from each chord: it is widened into the
         broad phase and subtracted in each ellipse's frame (‖Aⱼ‖₂ · sag), giving a lower bound for the curve.
+        `run`: see `near_pairs`.
         """
         p = np.atleast_2d(np.asarray(starts, dtype=float))
         q = np.atleast_2d(np.asarray(ends, dtype=float))
         sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
-        rows, cols, levels = self.segment_pairs(p, q, sag_m=sag)
+        rows, cols, levels = self.segment_pairs(p, q, sag_m=sag, run=run)
         out = np.full(len(p), np.inf)
         np.minimum.at(out, rows, levels)
         return out
 
     def segment_pairs(
-        self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None
+        self, starts: ArrayLike, ends: ArrayLike, *, sag_m: ArrayLike | None = None, run: int = 1
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(segment, ellipse, level) for every pair the broad phase keeps; see `min_segment_levels`."""
         p = np.atleast_2d(np.asarray(starts, dtype=float))
         q = np.atleast_2d(np.asarray(ends, dtype=float))
         sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
-        rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag)
+        rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag, run=run)
         return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
 
 

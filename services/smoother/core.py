@@ -94,7 +94,8 @@ def verify(
         # B″ is linear on each knot span and the samples include the knots, so the larger end value
         # bounds ‖B″‖ on every sample interval.
         deviation = np.maximum(acc[:-1], acc[1:]) * du**2 / 8.0
-        min_level = float(np.min(EllipseStack.of(ellipses).min_segment_levels(z[:-1], z[1:], sag_m=deviation)))
+        stack = EllipseStack.of(ellipses)
+        min_level = float(np.min(stack.min_segment_levels(z[:-1], z[1:], sag_m=deviation, run=SAMPLES_PER_SPAN)))
 
     return _judge(
         z,

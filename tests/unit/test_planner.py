@@ -33,6 +33,23 @@ def test_segment_test_agrees_with_dense_sampling(p, q, center, axes, angle):
     assert sampled - exact < 1e-3  # the sampling can only miss by its resolution
 
 
+@pytest.mark.parametrize("run", [2, 16, 37])
+def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
+    rng = np.random.default_rng(run)
+    ellipses = [
+        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.1, 1.5, 2))[::-1],
+                          angle_rad=rng.uniform(0, np.pi))
+        for _ in range(60)
+    ]
+    stack = EllipseStack.of(ellipses)
+    curve = 10.0 + np.cumsum(rng.normal(0.0, 0.05, (1000, 2)), axis=0)
+    radii = rng.uniform(0.0, 0.3, len(curve))
+    rows, cols = stack.near_pairs(curve, radii)
+    assert len(rows) > 0
+    for got, expected in zip(stack.near_pairs(curve, radii, run=run), (rows, cols)):
+        assert np.array_equal(got, expected)
+
+
 def test_intersected_names_the_crossed_ellipses():
     ellipses = [Ellipse.circle(center=[5, 0], radius=1), Ellipse.circle(center=[5, 3], radius=1)]
     assert intersected(np.array([[0.0, 0.0], [10.0, 0.0]]), ellipses).tolist() == [0]
