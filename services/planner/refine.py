@@ -313,7 +313,9 @@ class _ClarabelPathProblem:
             self._A.data = values
             self._solver = clarabel.DefaultSolver(self._P, self._q, self._A, b, self._cones, self._settings)
         else:
-            self._solver.update(A=values, b=b)
+            # As lists: the binding reads a numpy array one element at a time, a list of floats about
+            # three times faster (1.2 -> 0.4 ms a solve at n = 192, the conversion included).
+            self._solver.update(A=values.tolist(), b=b.tolist())
         solution = self._solver.solve()
         if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
             raise SolverFailure(f"path subproblem: Clarabel status {solution.status}")
