@@ -180,9 +180,12 @@ def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
     values = coef @ _GRID_BASIS
     curvature = np.abs(coef[:, 1]) + np.abs(coef[:, 2]) + 4.0 * (np.abs(coef[:, 3]) + np.abs(coef[:, 4]))
     small = np.abs(values) <= 0.5 * curvature[:, None] * h * h
-    hidden = np.any(small & np.roll(small, -1, axis=1), axis=1)
-    change = (np.sign(values) != np.sign(np.roll(values, -1, axis=1))) & ~hidden[:, None]
-    rows, cols = np.nonzero(change)
+    hidden = np.any(small[:, :-1] & small[:, 1:], axis=1) | (small[:, -1] & small[:, 0])
+    sign = np.sign(values)
+    change = np.empty_like(small)  # step t → t + 1 (the last one wrapping round)
+    np.not_equal(sign[:, :-1], sign[:, 1:], out=change[:, :-1])
+    np.not_equal(sign[:, -1], sign[:, 0], out=change[:, -1])
+    rows, cols = np.nonzero(change & ~hidden[:, None])
     slot = np.arange(len(rows)) - np.searchsorted(rows, rows)
     keep = slot < 4
     rows, cols, slot = rows[keep], cols[keep], slot[keep]
