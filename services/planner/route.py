@@ -177,7 +177,7 @@ def _trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
     """
     k = len(coef)
     h = _GRID[1]
-    values = coef @ _GRID_BASIS
+    values = np.einsum("kc,cg->kg", coef, _GRID_BASIS)
     curvature = np.abs(coef[:, 1]) + np.abs(coef[:, 2]) + 4.0 * (np.abs(coef[:, 3]) + np.abs(coef[:, 4]))
     small = np.abs(values) <= 0.5 * curvature[:, None] * h * h
     hidden = np.any(small[:, :-1] & small[:, 1:], axis=1) | (small[:, -1] & small[:, 0])
