@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
+from itertools import chain
 from typing import Literal
 
 import numpy as np
@@ -212,7 +213,8 @@ def plan_until_verified(
     loops one of them once verified (the car went another way there; all three still reached their goal).
     `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
     """
-    attempts = [settings] + [replace(settings, level=level, curvature_factor=factor) for level, factor in repairs]
+    # Built as reached: a plan that verifies at once (the usual case) needs no repair settings.
+    attempts = chain([settings], (replace(settings, level=level, curvature_factor=factor) for level, factor in repairs))
     fallback: tuple[PathPlan, Smoothed | None] | None = None
     too_sharp: list[RefineSettings] = []  # attempts whose curve broke the curvature bound
     for attempt in attempts:
