@@ -282,7 +282,7 @@ def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) 
     """
     a = np.atleast_2d(np.asarray(semi_axes, dtype=float))
     f = np.maximum(a - inflation_m, 0.0)
-    if keep_m <= 1e-9:  # nothing to keep beyond the fit itself
+    if keep_m <= 0.0:  # nothing to keep beyond the fit itself
         return np.minimum(np.max(f / a, axis=1), 1.0)
     candidates = np.column_stack([f[:, 0], np.sqrt(f[:, 0] * f[:, 1]), f[:, 1]]) / keep_m
     q = np.clip(candidates, 1e-9, 1e12)[:, :, None]  # (m, 3 choices, 1)
