@@ -28,10 +28,7 @@ from services.smoother.core import smooth
 class PlanSettings:
     cover_tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its obstacle
     max_pieces: int = 64  # ellipses per obstacle at most
-    # One plan on a known map stops refining once a solve shortens Σ‖Δz‖² by less than 1 %, not 0.1 %:
-    # on the public maps one solve fewer (of 2-3), lengths within 0.06 % of the 0.1 % ones. The planner
-    # stage keeps its own settings.
-    refine: RefineSettings = field(default_factory=lambda: RefineSettings(rel_tolerance=1e-2))
+    refine: RefineSettings = field(default_factory=RefineSettings)
     # When the smoothed curve fails verification, re-optimise with wider margins, in this order.
     repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
 
