@@ -553,10 +553,12 @@ def _follow(*, sim: Child, supervisor: Supervisor, progress: _Progress, time_lim
 
 
 def summary(result: RunFile, *, wall_s: float, out_path: Path, restarts: int = 0) -> str:
-    """One line: outcome, goals, sim and wall time, replans, restarts, latency, clearance, file."""
+    """One line: outcome, goals, sim and wall time, replans, back-outs, restarts, latency, clearance, file."""
     t_end = result.trajectory[-1][0] if result.trajectory else 0.0
     lat = result.latency_ms
+    times, metres = result.backed_out()
+    backed = f", backed out {times}x ({metres:.1f} m)" if times else ""
     return (f"{result.scenario}: {result.status}, goals {result.goals_reached}, sim {t_end:.1f} s in "
-            f"{wall_s:.1f} s wall, replans {result.replans}, stage restarts {restarts}, scan->path latency "
+            f"{wall_s:.1f} s wall, replans {result.replans}{backed}, stage restarts {restarts}, scan->path latency "
             f"p50 {lat.p50:.0f} / p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance "
             f"{result.min_clearance:.3f} m -> {out_path}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, TypeVar
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from cvxnav.geometry import Ellipse
@@ -106,3 +107,13 @@ class RunFile(_OutputFile):
     replans: int = Field(ge=0)
     latency_ms: LatencyStats
     min_clearance: float
+
+    def backed_out(self) -> tuple[int, float]:
+        """How many times, and how far in all (m), the car moved against its heading: backing out of
+        dead ends along its tracks (`sim.service`)."""
+        traj = np.asarray(self.trajectory, dtype=float).reshape(-1, 4)
+        along = np.einsum("ij,ij->i", np.diff(traj[:, 1:3], axis=0),
+                          np.column_stack([np.cos(traj[:-1, 3]), np.sin(traj[:-1, 3])]))
+        back = along < -1e-9
+        starts = back & ~np.concatenate([[False], back[:-1]])
+        return int(np.count_nonzero(starts)), float(np.sum(-along[back]))

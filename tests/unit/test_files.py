@@ -120,3 +120,13 @@ def test_invalid_json_and_missing_file_are_one_line(tmp_path: Path) -> None:
 def test_models_are_frozen() -> None:
     with pytest.raises(Exception, match="frozen"):
         _run().replans = 3  # type: ignore[misc]
+
+
+def test_a_run_says_how_often_and_how_far_the_car_backed_out() -> None:
+    """Heading east throughout: 1 m forward, 0.5 m back, 0.4 m forward, 0.3 m back, 0.2 m forward."""
+    xs = np.concatenate([np.linspace(0.0, 1.0, 11), np.linspace(0.95, 0.5, 10), np.linspace(0.6, 0.9, 4),
+                         np.linspace(0.8, 0.6, 3), np.linspace(0.7, 0.8, 2)])
+    run = _run().model_copy(update={"trajectory": [(0.05 * k, float(x), 0.0, 0.0) for k, x in enumerate(xs)]})
+    times, metres = run.backed_out()
+    assert times == 2 and metres == pytest.approx(0.8)
+    assert _run().backed_out() == (0, 0.0)
