@@ -11,6 +11,8 @@ the lookahead point g = (gx, gy) to lie on one circle about it gives
 
 the classic law with |g|² replaced by |g|² − L²/4. On a circular path the centre then has zero
 steady-state cross-track error: the lookahead point and the centre share the turning circle.
+Backing out of a dead end along its own tracks (`reverse_command`), the car tracks its rear axle
+instead, with the classic law: in reverse the rear axle leads.
 
 Speed is the largest value from which the car can still slow down, at `max_decel_mps2`, to each path
 vertex's limit v_j and to rest at the path end:
