@@ -160,9 +160,7 @@ class PurePursuit:
         if remaining > self.stop_tolerance_m:
             speed = min(self.reverse_speed_mps, math.sqrt(2.0 * self.max_decel_mps2 * remaining))
         goal = self._point_at(z=z, s_vertices=s_start, seg_len=seg_len, s_m=s_here + self.reverse_lookahead_m)
-        c, s = math.cos(state.theta_rad), math.sin(state.theta_rad)
-        dx, dy = float(goal[0] - rear[0]), float(goal[1] - rear[1])
-        gx, gy = c * dx + s * dy, -s * dx + c * dy
+        gx, gy = _in_frame(goal, origin=rear, theta_rad=state.theta_rad)
         g2 = gx * gx + gy * gy
         steering = math.atan(2.0 * self.wheelbase_m * gy / g2) if g2 > 1e-12 else 0.0
         steering = max(-self.max_steering_rad, min(self.max_steering_rad, steering))
@@ -244,15 +242,19 @@ class PurePursuit:
 
     def _steer(self, state: VehicleState, *, goal: FloatArray) -> float:
         L = self.wheelbase_m
-        c, s = math.cos(state.theta_rad), math.sin(state.theta_rad)
-        rx, ry = state.x_m - 0.5 * L * c, state.y_m - 0.5 * L * s  # rear axle
-        dx, dy = float(goal[0]) - rx, float(goal[1]) - ry
-        gx, gy = c * dx + s * dy, -s * dx + c * dy
+        gx, gy = _in_frame(goal, origin=rear_axle(state, wheelbase_m=L), theta_rad=state.theta_rad)
         denom = gx * gx + gy * gy - 0.25 * L * L
         if denom <= 1e-9:  # goal no farther from the rear axle than the centre is: turn hard towards it
             return math.copysign(self.max_steering_rad, gy) if gy != 0.0 else 0.0
         delta = math.atan(2.0 * L * gy / denom)
         return max(-self.max_steering_rad, min(self.max_steering_rad, delta))
+
+
+def _in_frame(point: ArrayLike, *, origin: ArrayLike, theta_rad: float) -> tuple[float, float]:
+    """`point` in the frame at `origin` whose x axis points along `theta_rad` (y to its left)."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    dx, dy = float(point[0]) - float(origin[0]), float(point[1]) - float(origin[1])
+    return c * dx + s * dy, -s * dx + c * dy
 
 
 @dataclass
