@@ -85,10 +85,13 @@ def _route(
     extra_m: float,
 ) -> list[FloatArray] | None:
     """Legs of the shortest route, after a straight lead-in start → origin (none when origin is start),
-    round ellipses enlarged by `extra_m`."""
-    grown = [e.grown(extra_m) for e in ellipses] if extra_m > 0 else ellipses
-    if origin is not start and len(intersected(np.vstack([start, origin]), grown, level=level)):
-        return None
+    round ellipses enlarged by `extra_m`. The caller has checked the lead-in against the ellipses
+    themselves; here it is checked against the enlarged ones."""
+    grown = ellipses
+    if extra_m > 0:
+        grown = [e.grown(extra_m) for e in ellipses]
+        if origin is not start and len(intersected(np.vstack([start, origin]), grown, level=level)):
+            return None
     reference = np.vstack([origin, goals])
     if len(intersected(reference, grown, level=level)) == 0:
         legs = [reference[k : k + 2] for k in range(len(goals))]
