@@ -274,8 +274,8 @@ class SimCore:
         if answer.goal_index != self.goals.reached_count or len(answer.points) < 2:
             return None  # planned for a goal already passed: keep the current path until the replan
         start = self.scan_xy.get(answer.scan_seq, (self.state.x_m, self.state.y_m))
-        reason = self.guard.check(answer.points, start=start)
         points = np.asarray(answer.points, dtype=float)
+        reason = self.guard.check(points, start=start)
         if reason is None and np.dot(points[1] - points[0], self._heading()) <= 0.0:
             reason = "the path starts against the car's heading"  # a way the car cannot turn onto
         if reason is not None:
