@@ -20,6 +20,11 @@ from scipy.spatial import cKDTree
 FloatArray = NDArray[np.float64]
 
 
+def _frozen(array: FloatArray) -> FloatArray:
+    array.flags.writeable = False
+    return array
+
+
 @dataclass(frozen=True, eq=False)
 class Ellipse:
     """One ellipse {z : ‖A z + b‖₂ ≤ 1}."""
@@ -50,14 +55,16 @@ class Ellipse:
     def circle(cls, *, center: ArrayLike, radius: float) -> Ellipse:
         return cls.from_axes(center=center, semi_axes=(radius, radius))
 
-    @property
+    # Cached (read-only): an ellipse never changes, and the covers, the grouping and the planner ask
+    # for these thousands of times a scan, each a 2 × 2 numpy call of some 10 µs.
+    @cached_property
     def center(self) -> FloatArray:
-        return -np.linalg.solve(self.A, self.b)
+        return _frozen(-np.linalg.solve(self.A, self.b))
 
-    @property
+    @cached_property
     def semi_axes(self) -> FloatArray:
         """Semi-axes, largest first."""
-        return 1.0 / np.linalg.eigvalsh(self.A)
+        return _frozen(1.0 / np.linalg.eigvalsh(self.A))
 
     @property
     def rotation(self) -> FloatArray:
