@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from cvxnav.geometry import Ellipse, EllipseStack, polyline_length
 from services.planner.core import intersected, plan_path
 from services.planner.refine import RefineSettings
-from services.planner.route import tangent_route
+from services.planner.route import _DeepCells, tangent_route
 
 BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]))
 coord = st.floats(-5, 5, allow_nan=False)
@@ -78,6 +78,21 @@ def test_shortest_path_round_one_disc_matches_the_analytic_length():
     optimum = _around_disc_length(6.0, 2.0 * level)
     assert polyline_length(plan.points) == pytest.approx(optimum, rel=0.01)
     assert disc.level(plan.points).min() >= level - 1e-6
+
+
+def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
+    rng = np.random.default_rng(3)
+    ellipses = [
+        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.3, 1.5, 2))[::-1],
+                          angle_rad=rng.uniform(0, np.pi))
+        for _ in range(60)
+    ]
+    stack = EllipseStack.of(ellipses)
+    p, q = rng.uniform(-1, 21, (2000, 2)), rng.uniform(-1, 21, (2000, 2))
+    sure = _DeepCells(stack).blocked(p, q)
+    exact = stack.min_segment_levels(p, q) < 1.0 - 1e-9
+    assert not np.any(sure & ~exact)
+    assert np.sum(sure) > 0.8 * np.sum(exact)  # and it finds most of them
 
 
 def test_route_passes_a_u_trap_instead_of_entering_it():
