@@ -535,7 +535,7 @@ class _TangentGraph:
         self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
         self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
         self.arcs = _Arcs(frames, self.cuts, self.covered, bounds_min, bounds_max)
-        self.pair_done = np.zeros(0, dtype=np.int64)  # sorted keys i·m + j of the pairs with tangents
+        self.pair_done = np.zeros((m, m), dtype=bool)  # pairs (i < j) with tangents
         kk, ee = np.meshgrid(np.arange(t), np.arange(m), indexing="ij")
         tk, tl = np.triu_indices(t, k=1)
         self.segments = _Segments.concat([
@@ -561,7 +561,7 @@ class _TangentGraph:
 
     def _grow(self, bound: FloatArray) -> None:
         """Cuts of the ellipses and tangents of the pairs that the bound newly lets in."""
-        frames, m = self.frames, len(self.frames.A)
+        frames = self.frames
         c, r = frames.centers, frames.reach
         # Ellipses that reach into some leg's informed ellipse (distance to a centre minus the reach).
         relevant = np.flatnonzero(self._informed(bound, c, -2.0 * r, c))
@@ -579,13 +579,12 @@ class _TangentGraph:
         gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
         keep = self._informed(bound, c[ii], gap - r[ii] - r[jj], c[jj])
         ii, jj = ii[keep], jj[keep]
-        keys = ii.astype(np.int64) * m + jj
-        fresh = ~np.isin(keys, self.pair_done, assume_unique=True)
+        fresh = ~self.pair_done[ii, jj]
         if np.any(fresh):
             added = _pair_tangents(frames, self.arcs, ii[fresh], jj[fresh])
             self.segments = _Segments.concat([self.segments, added])
             self.status = np.concatenate([self.status, np.zeros(len(added.p), dtype=np.int8)])
-            self.pair_done = np.union1d(self.pair_done, keys[fresh])
+            self.pair_done[ii[fresh], jj[fresh]] = True
 
     def build(self, bound: FloatArray):
         """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
