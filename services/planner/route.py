@@ -249,8 +249,9 @@ class _Segments:
 
 
 def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -> _Segments:
-    """The common tangents of the ellipse pairs (i, j), but for those whose angle window on i (a pair
-    clear of each other has one tangent of each sign in each of two windows) holds no free arc of i."""
+    """The common tangents of the ellipse pairs (i, j) whose tangent points both lie on free arcs (both
+    ellipses' cuts are known: the graph would drop the others). Windows on i (a pair clear of each other
+    has one tangent of each sign in each of two windows) that hold no free arc of i are not solved."""
     Q = np.einsum("kij,klj->kil", frames.Ainv[j], frames.Ainv[j])  # j's shape matrix
     c = np.einsum("kij,kj->ki", frames.A[i], frames.centers[j]) + frames.b[i]  # j's centre in i's frame
     S = np.einsum("kij,kjl,kml->kim", frames.A[i], Q, frames.A[i])  # j's shape in i's frame
@@ -297,7 +298,9 @@ def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -
     touch = c[row] + sign[:, None] * Sn / h[:, None]
     p = frames.point(i[row], n)
     q = frames.point(i[row], touch)
-    return _Segments(p, q, i[row], j[row], np.mod(theta, 2.0 * np.pi), frames.angle(j[row], q))
+    theta_p, theta_q = np.mod(theta, 2.0 * np.pi), frames.angle(j[row], q)
+    free = arcs.free[arcs.locate(i[row], theta_p)[0]] & arcs.free[arcs.locate(j[row], theta_q)[0]]
+    return _Segments(p, q, i[row], j[row], theta_p, theta_q).take(free)
 
 
 def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e: FloatArray) -> _Segments:
