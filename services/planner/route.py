@@ -579,15 +579,16 @@ class _TangentGraph:
         # ‖from − cᵢ‖ − rᵢ + gap(discs) + ‖cⱼ − to‖ − rⱼ long (either way round).
         ii, jj = np.triu_indices(len(relevant), k=1)
         ii, jj = relevant[ii], relevant[jj]
+        fresh = ~self.pair_done[ii, jj]
+        ii, jj = ii[fresh], jj[fresh]
         gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
         keep = self._informed(bound, c[ii], gap - r[ii] - r[jj], c[jj])
         ii, jj = ii[keep], jj[keep]
-        fresh = ~self.pair_done[ii, jj]
-        if np.any(fresh):
-            added = _pair_tangents(frames, self.arcs, ii[fresh], jj[fresh])
+        if len(ii):
+            added = _pair_tangents(frames, self.arcs, ii, jj)
             self.segments = _Segments.concat([self.segments, added])
             self.status = np.concatenate([self.status, np.zeros(len(added.p), dtype=np.int8)])
-            self.pair_done[ii[fresh], jj[fresh]] = True
+            self.pair_done[ii, jj] = True
 
     def build(self, bound: FloatArray):
         """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
