@@ -492,6 +492,7 @@ class _DeepCells:
         low = np.min(stack.centers - stack.reach[:, None], axis=0)
         high = np.max(stack.centers + stack.reach[:, None], axis=0)
         cell = max(_DEEP_CELL * float(np.median(stack.semi_axes[:, 1])), float(np.max(high - low)) / 1000.0)
+        low, high = low - cell, high + cell  # a border of unmarked cells, for the points off the grid
         self.origin, self.cell = low, cell
         self.deep = np.zeros(tuple(np.ceil((high - low) / cell).astype(int) + 1), dtype=bool)
         # The grid vertices in each ellipse's bounding box, box by box (rows of ny[e] vertices each).
@@ -515,10 +516,10 @@ class _DeepCells:
         count = np.ceil(np.linalg.norm(q - p, axis=1) / self.cell).astype(int) + 2
         row = np.repeat(np.arange(len(p)), count)
         t = (np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count)) / (count[row] - 1)
-        cell = np.floor((p[row] + t[:, None] * (q - p)[row] - self.origin) / self.cell).astype(int)
-        inside = np.all((cell >= 0) & (cell < self.deep.shape), axis=1)
-        hit = np.zeros(len(row), dtype=bool)
-        hit[inside] = self.deep[cell[inside, 0], cell[inside, 1]]
+        start, step = (p - self.origin) / self.cell, (q - p) / self.cell  # in cells
+        # Truncation and clipping put every point off the grid on its unmarked border.
+        cell = np.clip((start[row] + t[:, None] * step[row]).astype(int), 0, np.array(self.deep.shape) - 1)
+        hit = self.deep[cell[:, 0], cell[:, 1]]
         return np.bincount(row[hit], minlength=len(p)) > 0
 
 
