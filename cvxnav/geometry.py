@@ -291,7 +291,8 @@ def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) 
     f = np.maximum(a - inflation_m, 0.0)
     if keep_m <= 0.0:  # nothing to keep beyond the fit itself
         return np.minimum(np.max(f / a, axis=1), 1.0)
-    candidates = np.column_stack([f[:, 0], np.sqrt(f[:, 0] * f[:, 1]), f[:, 1]]) / keep_m
+    with np.errstate(over="ignore"):  # a keep-out distance tiny beside the fit: q is clipped to 1e12 below
+        candidates = np.column_stack([f[:, 0], np.sqrt(f[:, 0] * f[:, 1]), f[:, 1]]) / keep_m
     q = np.clip(candidates, 1e-9, 1e12)[:, :, None]  # (m, 3 choices, 1)
     h = np.sqrt((1.0 + 1.0 / q) * f[:, None, :] ** 2 + (1.0 + q) * keep_m**2)
     return np.minimum(np.min(np.max(h / a[:, None, :], axis=2), axis=1), 1.0)
