@@ -35,6 +35,15 @@ def test_growing_semi_axes_alone_would_miss_the_tip_of_a_thin_ellipse():
     assert thin.grown(0.65).level(tip_offset)[0] <= 1.0
 
 
+def test_an_ellipse_s_cached_centre_and_semi_axes_cannot_be_changed_in_place():
+    ellipse = Ellipse.from_axes(center=[1.0, 2.0], semi_axes=[3.0, 0.5], angle_rad=0.4)
+    assert ellipse.center is ellipse.center  # computed once
+    for cached in (ellipse.center, ellipse.semi_axes):
+        with pytest.raises(ValueError, match="read-only"):
+            cached[0] += 1.0
+    assert ellipse.center == pytest.approx([1.0, 2.0]) and ellipse.semi_axes == pytest.approx([3.0, 0.5])
+
+
 def test_growing_a_disc_adds_the_margin_to_its_radius():
     grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
     assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
