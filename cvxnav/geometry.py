@@ -161,7 +161,7 @@ class EllipseStack:
     @cached_property
     def reach(self) -> FloatArray:
         """Largest semi-axis of each ellipse: 1 / smallest eigenvalue of A."""
-        return 1.0 / np.linalg.eigvalsh(self.A)[:, 0] if len(self) else np.zeros(0)
+        return self.semi_axes[:, 0]
 
     @cached_property
     def semi_axes(self) -> FloatArray:
