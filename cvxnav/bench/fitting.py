@@ -8,7 +8,8 @@ the cvxpy route's.
 
 Scaling: cvxnav's planning time on seeded random fields of 10 … 200 obstacles in one fixed box (the
 shape of `field-60`), obstacles drawn like the public `field-*` scenarios (polygons, circles, point
-clusters). The growth exponent is the least-squares slope of log(time) on log(obstacles).
+clusters), one of them always across the straight line. The growth exponent is the least-squares slope
+of log(time) on log(obstacles).
 """
 
 from __future__ import annotations
@@ -80,14 +81,17 @@ def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, se
 
 
 def random_field(*, obstacles: int, seed: int, side_m: float = 24.0) -> Scenario:
-    """A `field-*`-style scenario: start (0, 0) heading 45°, goal (side, side), `obstacles` random shapes.
+    """A `field-*`-style scenario: start (0, 0) heading 45°, goal (side, side), `obstacles` shapes.
 
-    Centres are uniform in the box between start and goal, at least 1.5 m from both; shapes are
-    triangles to hexagons, circles and point clusters of 0.15–0.5 m radius, so the field stays passable
-    up to 200 obstacles in a 28 m box.
+    The first is a disc of radius 0.5 m at the centre of the box, across the straight line, so that
+    every field needs a route and its refinement: without it a sparse field can leave the straight
+    line clear (10 obstacles, seed 17, did), and its time would measure the straight-line shortcut
+    (under 1 ms) rather than planning. The others are random: centres uniform in the box between
+    start and goal, at least 1.5 m from both; triangles to hexagons, circles and point clusters of
+    0.15–0.5 m radius, so the field stays passable up to 200 obstacles in a 28 m box.
     """
     rng = np.random.default_rng(seed)
-    items: list[dict] = []
+    items: list[dict] = [{"type": "circle", "center": [side_m / 2, side_m / 2], "radius": 0.5}]
     ends = np.array([[0.0, 0.0], [side_m, side_m]])
     while len(items) < obstacles:
         centre = rng.uniform(0.5, side_m - 0.5, size=2)
@@ -103,7 +107,8 @@ def random_field(*, obstacles: int, seed: int, side_m: float = 24.0) -> Scenario
         radii = radius * (np.ones(count) if kind == "polygon" else np.sqrt(rng.uniform(0.2, 1.0, count)))
         pts = centre + radii[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
         key = "vertices" if kind == "polygon" else "points"
-        if kind == "polygon" and abs(np.cross(pts[1] - pts[0], pts[2] - pts[0])) < 1e-3:
+        (ax, ay), (bx, by) = pts[1] - pts[0], pts[2] - pts[0]
+        if kind == "polygon" and abs(ax * by - ay * bx) < 1e-3:  # the first three vertices nearly collinear
             continue
         items.append({"type": kind, key: pts.round(4).tolist()})
     document = {

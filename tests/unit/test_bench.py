@@ -158,3 +158,16 @@ def test_missing_peers_are_skipped_with_a_note_that_says_how_to_install(disc, mo
     assert names == [runner.CVXNAV, runner.PAPER, runner.OPTIMUM]
     assert sum("skipped" in note and "pip install" in note for note in report.notes) == 2
     assert report.targets.time_ratio_vs_bitstar == {} and report.scaling is None
+
+
+@pytest.mark.parametrize("count", [10, 25, 200])
+def test_every_scaling_field_blocks_the_straight_line(count):
+    """Each point of the scaling run measures planning (a route and its refinement), never the
+    straight-line shortcut a sparse field could otherwise leave open."""
+    from cvxnav.bench.fitting import random_field
+    from services.planner.core import intersected
+
+    scenario = random_field(obstacles=count, seed=7 + count)
+    assert len(scenario.obstacles) == count
+    problem = BenchProblem.of(scenario)
+    assert len(intersected(np.vstack([problem.start, problem.goals]), problem.grown))
