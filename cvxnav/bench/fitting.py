@@ -147,6 +147,10 @@ def scaling_benchmark(*, counts: tuple[int, ...], repeats: int, seed: int = 7,
         if on_step is not None:
             on_step()
     usable = [(p.obstacles, p.time_median_ms) for p in points if p.success and p.time_median_ms]
+    # A fit over the whole range can hide a steep end behind a flat start (the refinement's cost
+    # depends on the path's length more than on the obstacles): each point also gets its local slope.
+    slopes = {b[0]: float(np.log(b[1] / a[1]) / np.log(b[0] / a[0])) for a, b in zip(usable, usable[1:])}
+    points = [p.model_copy(update={"local_exponent": slopes.get(p.obstacles)}) if p.success else p for p in points]
     exponent = None
     if len(usable) >= 2:
         x, y = np.log([u[0] for u in usable]), np.log([u[1] for u in usable])

@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/1"
+FORMAT = "cvxnav.bench/2"  # /2: `ScalingPoint.local_exponent`
 
 
 class _Frozen(BaseModel):
@@ -63,6 +63,8 @@ class ScalingPoint(_Frozen):
     grown_ellipses: int = Field(ge=0)
     time_median_ms: float | None
     success: bool
+    # slope of log(time) on log(obstacles) from the previous successful point: where the growth is steep
+    local_exponent: float | None = None
 
 
 class ScalingResult(_Frozen):
@@ -92,7 +94,7 @@ class Machine(_Frozen):
 
 
 class BenchReport(_Frozen):
-    format: Literal["cvxnav.bench/1"] = FORMAT
+    format: Literal["cvxnav.bench/2"] = FORMAT
     command: str
     machine: Machine
     quick: bool

@@ -328,7 +328,16 @@ def _target_lines(report: BenchReport) -> list[str]:
     for count, ratio in t.fit_ratio_vs_drake.items():
         lines.append(f"fit time mvee_fast ÷ Drake, {count} points (target ≤ 1): {_num(ratio, '.2f')}")
     lines.append(f"planning-time growth exponent in obstacles (target ≤ 1): {_num(t.growth_exponent, '.2f')}")
+    if report.scaling and (steep := _steepest(report.scaling)):
+        lines.append(f"steepest local growth exponent: {steep[1]:.2f} ({steep[0]} obstacles)")
     return lines
+
+
+def _steepest(scaling: ScalingResult) -> tuple[str, float] | None:
+    """(obstacle counts, exponent) of the steepest step between successive successful scaling points."""
+    usable = [p for p in scaling.points if p.success and p.time_median_ms]
+    steps = [(f"{a.obstacles} → {b.obstacles}", b.local_exponent) for a, b in zip(usable, usable[1:])]
+    return max(steps, key=lambda step: step[1], default=None)
 
 
 def print_report(report: BenchReport, *, console: Console) -> None:
@@ -352,10 +361,11 @@ def print_report(report: BenchReport, *, console: Console) -> None:
     console.print(fit)
     if report.scaling:
         scale = Table(title=f"scaling (growth exponent {_num(report.scaling.growth_exponent, '.2f')})")
-        for column in ("obstacles", "grown ellipses", "median ms", "ok"):
+        for column in ("obstacles", "grown ellipses", "median ms", "local exponent", "ok"):
             scale.add_column(column)
         for s in report.scaling.points:
-            scale.add_row(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"), "yes" if s.success else "no")
+            scale.add_row(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"),
+                          _num(s.local_exponent, ".2f"), "yes" if s.success else "no")
         console.print(scale)
     for line in _target_lines(report) + report.notes:
         console.print(f"• {line}")
@@ -376,8 +386,9 @@ def to_markdown(report: BenchReport) -> str:
                  [(str(f.points), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"), f.error)
                   for f in report.fit]) + [""]
     if report.scaling:
-        out += table(("obstacles", "grown ellipses", "cvxnav median ms", "ok"),
-                     [(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"), "yes" if s.success else "no")
+        out += table(("obstacles", "grown ellipses", "cvxnav median ms", "local exponent", "ok"),
+                     [(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"),
+                       _num(s.local_exponent, ".2f"), "yes" if s.success else "no")
                       for s in report.scaling.points]) + [""]
     out += [f"- {line}" for line in _target_lines(report) + report.notes]
     return "\n".join(out) + "\n"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +36,11 @@ def test_quick_bench_writes_json_that_validates_against_its_schema(tmp_path: Pat
     for name in peers:
         # Either measured, or skipped with a note that says how to get it.
         assert name in rows or any("pip install" in note for note in report.notes)
+    # The quick scaling run: two fields, the second's local exponent is the slope from the first.
+    first, second = report.scaling.points
+    assert first.success and second.success and first.local_exponent is None
+    assert second.local_exponent == pytest.approx(
+        math.log(second.time_median_ms / first.time_median_ms) / math.log(second.obstacles / first.obstacles))
     assert "cvxnav" in done.stdout and "length ÷ grown-ellipse optimum" in done.stdout
     assert "| scenario | planner |" in markdown.read_text()
 
