@@ -440,7 +440,8 @@ def refine(
 
     # The route itself is the first iterate: when it is already optimal (the exact tangent route often
     # is, up to the curvature bound) one solve confirms it.
-    previous = float(np.sum(np.diff(z, axis=0) ** 2))
+    previous = previous_path = float(np.sum(np.diff(z, axis=0) ** 2))
+    previous_penalty = 0.0
     iterations = 0
     slack = np.zeros(n - 2)
     for iterations in range(1, settings.max_iterations + 1):
@@ -469,16 +470,20 @@ def refine(
             hi=np.asarray(bounds_max, dtype=float),
         )
         z, slack, elastic = problem.solve(data)
-        penalty = np.sum(np.maximum(slack, 0.0)) + np.sum(np.maximum(elastic, 0.0))
-        cost = float(np.sum(np.diff(z, axis=0) ** 2) + settings.slack_weight * penalty)
+        penalty = float(np.sum(np.maximum(slack, 0.0)) + np.sum(np.maximum(elastic, 0.0)))
+        path = float(np.sum(np.diff(z, axis=0) ** 2))
+        cost = path + settings.slack_weight * penalty
         tolerance = settings.rel_tolerance * max(abs(cost), 1e-9)
         # Later iterates cannot get longer (each is feasible for the next subproblem); the first can,
         # when the route breaks the curvature bound: that is progress, not a stall.
         stalled = -tolerance <= previous - cost <= tolerance if iterations == 1 else previous - cost <= tolerance
+        # A solve that clears the previous one's slack drops its cost by the whole penalty; if its path
+        # moved no more than the tolerance, that drop was all there was to gain.
+        cleared = previous_penalty > 0.0 and penalty <= 1e-9 and abs(previous_path - path) <= tolerance
         met = _curvature_met(z, settings.curvature_met_factor * max_curvature)
-        if stalled and (met or iterations >= settings.min_iterations_unmet):
+        if (stalled or cleared) and (met or iterations >= settings.min_iterations_unmet):
             break
-        previous = cost
+        previous, previous_path, previous_penalty = cost, path, penalty
     return Refined(
         points=z,
         goal_indices=goal_indices,

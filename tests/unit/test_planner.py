@@ -187,3 +187,24 @@ def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
     assert plan.status == "ok" and not smoothed.verification.ok
     assert smoothed.verification.max_curvature > 0.5
     assert len(attempts) == 2  # the base margin and (1.0, 0.97); (1.05, 0.8) is stricter than the base
+
+
+def test_a_solve_that_clears_the_curvature_slack_without_moving_the_path_ends_the_refinement():
+    """On the benchmark's 200-obstacle field the first solve cannot meet the curvature bound without
+    slack; the second clears it and moves the path by less than the tolerance. That is converged: a
+    refinement run on to a tolerance of 1e-6 ends no more than 0.1 % shorter."""
+    from cvxnav.bench.fitting import random_field
+    from cvxnav.bench.problem import BenchProblem
+    from services.planner.refine import refine
+
+    problem = BenchProblem.of(random_field(obstacles=200, seed=207))
+    box = dict(bounds_min=problem.bounds_min, bounds_max=problem.bounds_max)
+    legs = tangent_route(start=problem.start, goals=problem.goals, ellipses=problem.grown, level=RefineSettings().level, **box)
+    kwargs = dict(legs=legs, ellipses=problem.grown, max_curvature=problem.scenario.max_curvature,
+                  heading_rad=problem.scenario.start.theta, **box)
+    assert refine(**kwargs, settings=RefineSettings(max_iterations=1)).curvature_slack > 1e-3
+    refined = refine(**kwargs)
+    assert refined.iterations == 2 and refined.curvature_slack <= 1e-9
+    tight = refine(**kwargs, settings=RefineSettings(rel_tolerance=1e-6))
+    assert tight.iterations > 2
+    assert polyline_length(refined.points) <= 1.001 * polyline_length(tight.points)
