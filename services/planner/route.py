@@ -76,13 +76,32 @@ class _Frames:
     Ainv: FloatArray
     centers: FloatArray
     reach: FloatArray
+    shape: FloatArray  # Q = A⁻¹A⁻ᵀ: the ellipse is {c + A⁻¹v : ‖v‖ ≤ 1}, support function √(nᵀQn)
 
     @classmethod
     def of(cls, stack: EllipseStack, scale: FloatArray) -> _Frames:
         A = stack.A / scale[:, None, None]
         b = stack.b / scale[:, None]
         Ainv = np.linalg.inv(A)
-        return cls(A=A, b=b, Ainv=Ainv, centers=-np.einsum("mij,mj->mi", Ainv, b), reach=stack.reach * scale)
+        return cls(A=A, b=b, Ainv=Ainv, centers=-np.einsum("mij,mj->mi", Ainv, b), reach=stack.reach * scale,
+                   shape=np.einsum("kij,klj->kil", Ainv, Ainv))
+
+    def relative(self, i: FloatArray, j: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Ellipse j's centre c = Aᵢcⱼ + bᵢ (k, 2) and shape S = Aᵢ Qⱼ Aᵢᵀ (k, 2, 2) in i's unit-disc frame.
+
+        Written out entry by entry (a batch of 2 × 2 products is several times faster so than by einsum),
+        summed in einsum's order: Sₗₘ = (Aₗ₀Q₀₀Aₘ₀ + Aₗ₀Q₀₁Aₘ₁) + (Aₗ₁Q₁₀Aₘ₀ + Aₗ₁Q₁₁Aₘ₁).
+        """
+        A, Q, z = self.A[i], self.shape[j], self.centers[j]
+        b = self.b[i]
+        c = np.empty((len(i), 2))
+        S = np.empty((len(i), 2, 2))
+        for l in range(2):
+            c[:, l] = A[:, l, 0] * z[:, 0] + A[:, l, 1] * z[:, 1] + b[:, l]
+            for m in range(2):
+                S[:, l, m] = (A[:, l, 0] * Q[:, 0, 0] * A[:, m, 0] + A[:, l, 0] * Q[:, 0, 1] * A[:, m, 1]) + (
+                    A[:, l, 1] * Q[:, 1, 0] * A[:, m, 0] + A[:, l, 1] * Q[:, 1, 1] * A[:, m, 1])
+        return c, S
 
     def point(self, owner: FloatArray, u: FloatArray) -> FloatArray:
         """World points A⁻¹(u − b) of unit-frame points u on ellipses `owner`."""
@@ -252,9 +271,7 @@ def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -
     """The common tangents of the ellipse pairs (i, j) whose tangent points both lie on free arcs (both
     ellipses' cuts are known: the graph would drop the others). Windows on i (a pair clear of each other
     has one tangent of each sign in each of two windows) that hold no free arc of i are not solved."""
-    Q = np.einsum("kij,klj->kil", frames.Ainv[j], frames.Ainv[j])  # j's shape matrix
-    c = np.einsum("kij,kj->ki", frames.A[i], frames.centers[j]) + frames.b[i]  # j's centre in i's frame
-    S = np.einsum("kij,kjl,kml->kim", frames.A[i], Q, frames.A[i])  # j's shape in i's frame
+    c, S = frames.relative(i, j)
     D = np.linalg.norm(c, axis=1)
     rho = np.sqrt(0.5 * (S[:, 0, 0] + S[:, 1, 1] + np.hypot(S[:, 0, 0] - S[:, 1, 1], 2.0 * S[:, 0, 1])))
     far = D > (1.0 + rho) * (1.0 + 1e-9)
