@@ -335,6 +335,12 @@ def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e:
 
 
 _EDGE_RAD = 1e-9  # a cut's side is read this far either side of it
+_FREE_BINS = 256  # angle bins of each ellipse's boundary, for a quick test of which windows meet a free arc
+
+
+def _bin(theta: FloatArray) -> FloatArray:
+    """The angle bin of θ ≥ 0 (not reduced: θ + 2π is in bin + _FREE_BINS, up to rounding)."""
+    return np.floor(theta * (_FREE_BINS / (2.0 * np.pi))).astype(int)
 
 
 def _bound_sources(frames: _Frames, owner: FloatArray, bounds_min: FloatArray, bounds_max: FloatArray):
@@ -435,8 +441,24 @@ class _Arcs:
         self.free = (coverage == 0) & np.repeat(covered, arcs_of)
         # Ellipses with a free arc somewhere: only they can hold a tangent point of the graph.
         self.has_free = np.logical_or.reduceat(self.free, self.arc_first) if m else np.zeros(0, dtype=bool)
-        self._free_before = np.concatenate([[0], np.cumsum(self.free)])  # free arcs before each arc id
         self._keys = self.owner * 8.0 + self.theta
+        # The angle bins each free arc touches, widened by 1e-9 rad either way (arc k of an ellipse runs
+        # from its cut k to the next, the last one to the first + 2π), counted over two turns of bins
+        # (bin b is bin b mod _FREE_BINS) for `meets_free`.
+        cut = np.arange(len(self.owner))
+        arc = cut_arcs[self.free[cut_arcs]]
+        cut = cut[self.free[cut_arcs]]
+        nxt = np.minimum(cut + 1, len(self.owner) - 1)
+        following = self.owner[nxt] == self.owner[cut]
+        end = np.where(following & (cut + 1 < len(self.owner)), self.theta[nxt], self.theta[self.first[self.owner[cut]]] + 2.0 * np.pi)
+        touched = np.zeros((m, 3 * _FREE_BINS + 1), dtype=int)  # a difference array: +1 at a first bin, −1 past a last
+        start = np.mod(self.theta[cut] - 1e-9, 2.0 * np.pi)
+        np.add.at(touched, (self.owner[cut], _bin(start)), 1)
+        np.add.at(touched, (self.owner[cut], _bin(start + (end - self.theta[cut]) + 2e-9) + 1), -1)
+        near_free = np.any(np.cumsum(touched, axis=1)[:, : 3 * _FREE_BINS].reshape(m, 3, _FREE_BINS) > 0, axis=1)
+        near_free[(self.count == 0) & self.has_free] = True  # a free loop
+        twice = np.hstack([near_free, near_free, near_free[:, :1]])
+        self._free_bins_before = np.hstack([np.zeros((m, 1), dtype=int), np.cumsum(twice, axis=1)])
 
     def _cuts_upto(self, owner: FloatArray, theta: FloatArray) -> FloatArray:
         """How many of each ellipse's cuts lie at angles ≤ θ (θ ∈ [0, 2π))."""
@@ -446,22 +468,15 @@ class _Arcs:
 
     def meets_free(self, owner: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
         """Whether the angle window [lo, hi] (hi − lo < 2π) on each ellipse `owner` may hold a point
-        that `locate` puts on a free arc: the window covers the arc at lo and one more per cut in
-        (lo, hi]. Widened by 1e-9 rad either way, so that rounding can only keep a window."""
+        that `locate` puts on a free arc: whether it meets an angle bin that a free arc touches. Both
+        the window and the arcs are widened by 1e-9 rad either way, so a point of a free arc in the
+        window lies in a bin counted for both, whichever turn rounding puts it in."""
         start = np.mod(lo - 1e-9, 2.0 * np.pi)
-        end = start + (hi - lo) + 2e-9
-        count = self.count[owner]
-        at_start = self._cuts_upto(owner, start)
-        beyond = end >= 2.0 * np.pi
-        at_end = np.where(beyond, count + self._cuts_upto(owner, np.where(beyond, end - 2.0 * np.pi, end)),
-                          self._cuts_upto(owner, end))
-        k = np.maximum(count, 1)
-        first_arc = np.where(count > 0, (at_start - 1) % k, 0)  # local index of the arc at `start`
-        last_arc = first_arc + at_end - at_start  # inclusive, may pass the last arc (wrapping round)
-        base = self.arc_first[owner]
-        within = self._free_before[base + np.minimum(last_arc, k - 1) + 1] - self._free_before[base + first_arc]
-        wrapped = self._free_before[base + np.clip(last_arc - k, -1, k - 1) + 1] - self._free_before[base]
-        return np.where(last_arc - first_arc >= k - 1, self.has_free[owner], (within + wrapped) > 0)
+        first, last = _bin(start), _bin(start + (hi - lo) + 2e-9)  # last < first + 2 _FREE_BINS
+        whole = last - first >= _FREE_BINS - 1
+        last = np.minimum(last, first + _FREE_BINS - 2)
+        met = self._free_bins_before[owner, last + 1] - self._free_bins_before[owner, first] > 0
+        return np.where(whole, self.has_free[owner], met)
 
     def locate(self, owner: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The arc id of each boundary point, and its angle unwrapped past the arc's start cut."""
