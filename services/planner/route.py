@@ -267,29 +267,56 @@ class _Segments:
         return _Segments(self.p[keep], self.q[keep], self.owner_p[keep], self.owner_q[keep], self.theta_p[keep], self.theta_q[keep])
 
 
-def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -> _Segments:
-    """The common tangents of the ellipse pairs (i, j) whose tangent points both lie on free arcs (both
-    ellipses' cuts are known: the graph would drop the others). Windows on i (a pair clear of each other
-    has one tangent of each sign in each of two windows) that hold no free arc of i are not solved."""
-    c, S = frames.relative(i, j)
+def _facing_windows(c: FloatArray, S: FloatArray):
+    """For ellipse j (centre c, shape S in i's unit-disc frame): its distance D, whether its bounding
+    disc is clear of the unit circle, the angle φ of its centre, and the windows' ends a₁ < a₂: the
+    tangents touch the unit circle at angles φ ± [a₁, a₂], widened a little (for a circle, √(nᵀSn) = ρ
+    everywhere, the roots sit exactly at the ends)."""
     D = np.linalg.norm(c, axis=1)
     rho = np.sqrt(0.5 * (S[:, 0, 0] + S[:, 1, 1] + np.hypot(S[:, 0, 0] - S[:, 1, 1], 2.0 * S[:, 0, 1])))
     far = D > (1.0 + rho) * (1.0 + 1e-9)
+    phi = np.arctan2(c[:, 1], c[:, 0])
+    a1 = np.arccos(np.clip((1.0 + rho) / D, -1.0, 1.0)) - 1e-7
+    a2 = np.arccos(np.clip((1.0 - rho) / D, -1.0, 1.0)) + 1e-7
+    return D, far, phi, a1, a2
+
+
+def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -> _Segments:
+    """The common tangents of the ellipse pairs (i, j) whose tangent points both lie on free arcs (both
+    ellipses' cuts are known: the graph would drop the others).
+
+    A pair clear of each other (in i's frame) has one tangent of each sign in each of i's two windows,
+    left and right of the centre line; a window holding no free arc of i is not solved. When the pair is
+    also clear in j's frame, the tangent points on j lie in j's windows just as well, so a window of i is
+    solved only if a window of j where its tangent could touch holds a free arc of j. An outer tangent
+    touches both on one side of the centre line: it supports the hull of the two, and the line through
+    both centres leaves the hull where only one ellipse's boundary is (the one clear of the other's
+    bounding disc in its frame), with a tangent there that misses the other. Looking from j, the centre
+    line runs the other way: its right window. Affine maps with det A > 0 keep sides. An inner tangent
+    may touch j on either side.
+    """
+    c, S = frames.relative(i, j)
+    D, far, phi, a1, a2 = _facing_windows(c, S)
+    _, far_j, phi_j, a1_j, a2_j = _facing_windows(*frames.relative(j, i))
     thetas, signs, rows = [], [], []
     f = np.flatnonzero(far)
     if len(f):
-        phi = np.arctan2(c[f, 1], c[f, 0])
-        # Widened a little: for a circle (√(nᵀSn) = ρ everywhere) the roots sit exactly at the ends.
-        a1 = np.arccos(np.clip((1.0 + rho[f]) / D[f], -1.0, 1.0)) - 1e-7
-        a2 = np.arccos(np.clip((1.0 - rho[f]) / D[f], -1.0, 1.0)) + 1e-7
-        # The four windows (outer tangents, sign +1, then inner, −1; each either side of the centre
-        # line), solved in one batch.
+        lo = np.concatenate([phi[f] + a1[f], phi[f] - a2[f]])  # left window, then right
+        hi = np.concatenate([phi[f] + a2[f], phi[f] - a1[f]])
+        on_i = arcs.meets_free(i[np.tile(f, 2)], lo, hi)
+        on_j = np.ones(2 * len(f), dtype=bool)
+        g = f[far_j[f]]
+        on_j[np.concatenate([far_j[f]] * 2)] = arcs.meets_free(
+            j[np.tile(g, 2)], np.concatenate([phi_j[g] + a1_j[g], phi_j[g] - a2_j[g]]),
+            np.concatenate([phi_j[g] + a2_j[g], phi_j[g] - a1_j[g]]))
+        left_j, right_j = on_j[: len(f)], on_j[len(f) :]
+        # The four windows (outer tangents, sign +1, then inner, −1; each left then right), one batch.
+        solve = np.tile(on_i, 2) & np.concatenate([right_j, left_j, left_j | right_j, left_j | right_j])
         sign = np.repeat([1.0, 1.0, -1.0, -1.0], len(f))
-        lo = np.concatenate([phi + a1, phi - a2] * 2)
-        hi = np.concatenate([phi + a2, phi - a1] * 2)
-        w = np.flatnonzero(arcs.meets_free(i[np.tile(f, 4)], lo, hi))
+        w = np.flatnonzero(solve)
+        lo, hi = np.tile(lo, 2), np.tile(hi, 2)
         row = np.tile(f, 4)[w]
-        thetas.append(_window_roots(D[row], np.tile(phi, 4)[w], S[row], sign[w], lo[w], hi[w]))
+        thetas.append(_window_roots(D[row], phi[row], S[row], sign[w], lo[w], hi[w]))
         signs.append(sign[w])
         rows.append(row)
     n_ = np.flatnonzero(~far)

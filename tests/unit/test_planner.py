@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from cvxnav.geometry import Ellipse, EllipseStack, polyline_length
 from services.planner.core import intersected, plan_path
 from services.planner.refine import RefineSettings
-from services.planner.route import _DeepCells, tangent_route
+from services.planner.route import _Arcs, _cuts, _DeepCells, _Frames, _pair_tangents, tangent_route
 
 BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]))
 coord = st.floats(-5, 5, allow_nan=False)
@@ -93,6 +93,36 @@ def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     exact = stack.min_segment_levels(p, q) < 1.0 - 1e-9
     assert not np.any(sure & ~exact)
     assert np.sum(sure) > 0.8 * np.sum(exact)  # and it finds most of them
+
+
+@pytest.mark.parametrize("seed, ratio", [(1, 1.5), (2, 4.0), (3, 12.0)])
+def test_tangent_windows_skipped_for_lack_of_free_arcs_hold_no_tangent_the_graph_keeps(seed, ratio):
+    # Every pair of a random field (round to very eccentric ellipses, which stress the outer tangents'
+    # side): the tangents found with windows skipped are exactly those found solving every window.
+    rng = np.random.default_rng(seed)
+    ellipses = []
+    for _ in range(70):
+        major = rng.uniform(0.3, 1.6)
+        ellipses.append(Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=[major, major / rng.uniform(1.0, ratio)],
+                                          angle_rad=rng.uniform(0, np.pi)))
+    stack = EllipseStack.of(ellipses)
+    frames = _Frames.of(stack, np.full(len(stack), 1.01))
+    low, high = np.array([-1.0, -1.0]), np.array([21.0, 21.0])
+    every = np.arange(len(stack))
+    arcs = _Arcs(frames, _cuts(frames, EllipseStack(A=frames.A, b=frames.b), low, high, every),
+                 np.ones(len(stack), dtype=bool), low, high)
+
+    class EveryWindow(_Arcs):
+        def meets_free(self, owner, lo, hi):
+            return np.ones(len(owner), dtype=bool)
+
+    solve_all = object.__new__(EveryWindow)
+    solve_all.__dict__.update(arcs.__dict__)
+    i, j = np.triu_indices(len(stack), k=1)
+    skipped, full = _pair_tangents(frames, arcs, i, j), _pair_tangents(frames, solve_all, i, j)
+    assert len(full.p) > 100
+    for got, expected in zip((skipped.p, skipped.q, skipped.owner_p, skipped.owner_q), (full.p, full.q, full.owner_p, full.owner_q)):
+        assert np.array_equal(got, expected)
 
 
 def test_route_passes_a_u_trap_instead_of_entering_it():
