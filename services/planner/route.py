@@ -362,7 +362,7 @@ def _terminal_tangents(frames: _Frames, terminals: FloatArray, k: FloatArray, e:
 
 
 _EDGE_RAD = 1e-9  # a cut's side is read this far either side of it
-_FREE_BINS = 256  # angle bins of each ellipse's boundary, for a quick test of which windows meet a free arc
+_FREE_BINS = 128  # angle bins of each ellipse's boundary, for a quick test of which windows meet a free arc
 
 
 def _bin(theta: FloatArray) -> FloatArray:
@@ -470,22 +470,21 @@ class _Arcs:
         self.has_free = np.logical_or.reduceat(self.free, self.arc_first) if m else np.zeros(0, dtype=bool)
         self._keys = self.owner * 8.0 + self.theta
         # The angle bins each free arc touches, widened by 1e-9 rad either way (arc k of an ellipse runs
-        # from its cut k to the next, the last one to the first + 2π), counted over two turns of bins
-        # (bin b is bin b mod _FREE_BINS) for `meets_free`.
-        cut = np.arange(len(self.owner))
-        arc = cut_arcs[self.free[cut_arcs]]
-        cut = cut[self.free[cut_arcs]]
+        # from its cut k to the next, the last one to the first + 2π), and their counts over two turns
+        # of bins (bin b is bin b mod _FREE_BINS), for `meets_free`.
+        cut = np.flatnonzero(self.free[cut_arcs])
         nxt = np.minimum(cut + 1, len(self.owner) - 1)
-        following = self.owner[nxt] == self.owner[cut]
-        end = np.where(following & (cut + 1 < len(self.owner)), self.theta[nxt], self.theta[self.first[self.owner[cut]]] + 2.0 * np.pi)
-        touched = np.zeros((m, 3 * _FREE_BINS + 1), dtype=int)  # a difference array: +1 at a first bin, −1 past a last
+        following = (cut + 1 < len(self.owner)) & (self.owner[nxt] == self.owner[cut])
+        end = np.where(following, self.theta[nxt], self.theta[self.first[self.owner[cut]]] + 2.0 * np.pi)
         start = np.mod(self.theta[cut] - 1e-9, 2.0 * np.pi)
-        np.add.at(touched, (self.owner[cut], _bin(start)), 1)
-        np.add.at(touched, (self.owner[cut], _bin(start + (end - self.theta[cut]) + 2e-9) + 1), -1)
-        near_free = np.any(np.cumsum(touched, axis=1)[:, : 3 * _FREE_BINS].reshape(m, 3, _FREE_BINS) > 0, axis=1)
+        first_bin = _bin(start)
+        bins = np.minimum(_bin(start + (end - self.theta[cut]) + 2e-9) - first_bin + 1, _FREE_BINS)
+        local = np.arange(bins.sum()) - np.repeat(np.cumsum(bins) - bins, bins)
+        near_free = np.zeros((m, _FREE_BINS), dtype=bool)
+        near_free[np.repeat(self.owner[cut], bins), (np.repeat(first_bin, bins) + local) % _FREE_BINS] = True
         near_free[(self.count == 0) & self.has_free] = True  # a free loop
-        twice = np.hstack([near_free, near_free, near_free[:, :1]])
-        self._free_bins_before = np.hstack([np.zeros((m, 1), dtype=int), np.cumsum(twice, axis=1)])
+        twice = np.hstack([np.zeros((m, 1), dtype=bool), near_free, near_free, near_free[:, :1]])
+        self._free_bins_before = np.cumsum(twice, axis=1, dtype=np.int32)
 
     def _cuts_upto(self, owner: FloatArray, theta: FloatArray) -> FloatArray:
         """How many of each ellipse's cuts lie at angles ≤ θ (θ ∈ [0, 2π))."""
