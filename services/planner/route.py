@@ -571,14 +571,20 @@ class _DeepCells:
 
     def blocked(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Whether a point of segment p→q, sampled one cell apart, lies in a marked cell."""
-        count = np.ceil(np.linalg.norm(q - p, axis=1) / self.cell).astype(int) + 2
-        row = np.repeat(np.arange(len(p)), count)
-        t = (np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count)) / (count[row] - 1)
-        start, step = (p - self.origin) / self.cell, (q - p) / self.cell  # in cells
-        # Truncation and clipping put every point off the grid on its unmarked border.
-        cell = np.clip((start[row] + t[:, None] * step[row]).astype(int), 0, np.array(self.deep.shape) - 1)
-        hit = self.deep[cell[:, 0], cell[:, 1]]
-        return np.bincount(row[hit], minlength=len(p)) > 0
+        d = q - p
+        count = np.ceil(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) / self.cell).astype(int) + 2
+        skip = np.cumsum(count) - count
+        t = np.arange(count.sum()) - np.repeat(skip, count)  # sample k of count, then scaled to [0, 1]
+        t = t * np.repeat(1.0 / (count - 1), count)
+        # Truncation and clipping put every point off the grid on its unmarked border; the grid is read
+        # flat, cell (x, y) at x · rows + y.
+        flat = np.zeros(len(t), dtype=int)
+        for axis, size in enumerate(self.deep.shape):
+            start, step = (p[:, axis] - self.origin[axis]) / self.cell, d[:, axis] / self.cell  # in cells
+            index = (np.repeat(start, count) + t * np.repeat(step, count)).astype(int)
+            flat = flat * size + np.clip(index, 0, size - 1)
+        hit = self.deep.ravel()[flat]
+        return np.logical_or.reduceat(hit, skip) if len(p) else np.zeros(0, dtype=bool)
 
 
 class _TangentGraph:
