@@ -112,6 +112,12 @@ class _Frames:
         return np.mod(np.arctan2(u[:, 1], u[:, 0]), 2.0 * np.pi)
 
 
+def _distance(x: FloatArray, y: FloatArray) -> FloatArray:
+    """‖x − y‖ row by row (as np.linalg.norm sums it, without its (k, 2) temporaries)."""
+    dx, dy = x[..., 0] - y[..., 0], x[..., 1] - y[..., 1]
+    return np.sqrt(dx * dx + dy * dy)
+
+
 def _unit(theta: FloatArray) -> FloatArray:
     return np.stack([np.cos(theta), np.sin(theta)], axis=-1)
 
@@ -622,8 +628,8 @@ class _TangentGraph:
                 continue
             if not np.isfinite(bound[leg]):
                 return np.ones(len(x), dtype=bool)
-            forward = np.linalg.norm(x - a[leg], axis=1) + extra + np.linalg.norm(y - z[leg], axis=1)
-            backward = np.linalg.norm(y - a[leg], axis=1) + extra + np.linalg.norm(x - z[leg], axis=1)
+            forward = _distance(x, a[leg]) + extra + _distance(y, z[leg])
+            backward = _distance(y, a[leg]) + extra + _distance(x, z[leg])
             ok |= np.minimum(forward, backward) <= bound[leg] * (1.0 + 1e-12)
         return ok
 
@@ -646,7 +652,7 @@ class _TangentGraph:
         ii, jj = relevant[ii], relevant[jj]
         fresh = ~self.pair_done[ii, jj]
         ii, jj = ii[fresh], jj[fresh]
-        gap = np.maximum(np.linalg.norm(c[ii] - c[jj], axis=1) - r[ii] - r[jj], 0.0)
+        gap = np.maximum(_distance(c[ii], c[jj]) - r[ii] - r[jj], 0.0)
         keep = self._informed(bound, c[ii], gap - r[ii] - r[jj], c[jj])
         ii, jj = ii[keep], jj[keep]
         if len(ii):
@@ -661,7 +667,7 @@ class _TangentGraph:
         frames, t = self.frames, len(self.terminals)
         arcs = self.arcs
         all_seg = self.segments
-        length_all = np.linalg.norm(all_seg.q - all_seg.p, axis=1)
+        length_all = _distance(all_seg.q, all_seg.p)
         pick = np.flatnonzero((self.status != 2) & self._informed(bound, all_seg.p, length_all, all_seg.q))
         seg, length = all_seg.take(pick), length_all[pick]
 
