@@ -303,18 +303,19 @@ def _pair_tangents(frames: _Frames, arcs: _Arcs, i: FloatArray, j: FloatArray) -
     """
     c, S = frames.relative(i, j)
     D, far, phi, a1, a2 = _facing_windows(c, S)
-    _, far_j, phi_j, a1_j, a2_j = _facing_windows(*frames.relative(j, i))
     thetas, signs, rows = [], [], []
     f = np.flatnonzero(far)
     if len(f):
         lo = np.concatenate([phi[f] + a1[f], phi[f] - a2[f]])  # left window, then right
         hi = np.concatenate([phi[f] + a2[f], phi[f] - a1[f]])
         on_i = arcs.meets_free(i[np.tile(f, 2)], lo, hi)
+        # j's windows, for the pairs with a window of i to solve (and clear of each other in j's frame).
+        g = np.flatnonzero(on_i[: len(f)] | on_i[len(f) :])
+        _, far_j, phi_j, a1_j, a2_j = _facing_windows(*frames.relative(j[f[g]], i[f[g]]))
+        g, phi_j, a1_j, a2_j = g[far_j], phi_j[far_j], a1_j[far_j], a2_j[far_j]
         on_j = np.ones(2 * len(f), dtype=bool)
-        g = f[far_j[f]]
-        on_j[np.concatenate([far_j[f]] * 2)] = arcs.meets_free(
-            j[np.tile(g, 2)], np.concatenate([phi_j[g] + a1_j[g], phi_j[g] - a2_j[g]]),
-            np.concatenate([phi_j[g] + a2_j[g], phi_j[g] - a1_j[g]]))
+        on_j[np.concatenate([g, g + len(f)])] = arcs.meets_free(
+            j[f[np.tile(g, 2)]], np.concatenate([phi_j + a1_j, phi_j - a2_j]), np.concatenate([phi_j + a2_j, phi_j - a1_j]))
         left_j, right_j = on_j[: len(f)], on_j[len(f) :]
         # The four windows (outer tangents, sign +1, then inner, −1; each left then right), one batch.
         solve = np.tile(on_i, 2) & np.concatenate([right_j, left_j, left_j | right_j, left_j | right_j])
