@@ -16,7 +16,9 @@ move tangent points, and no polygon size is right for every map.
   at most four tangents. When j's bounding disc is clear of the unit circle (|c| > 1 + ρ, ρ² the
   largest eigenvalue of S) there are exactly four, one of each sign in each of the windows
   |θ − ∠c| ∈ [acos((1 + ρ)/|c|), acos((1 − ρ)/|c|)], where the sign is known at both ends: found by
-  safeguarded Newton. Close pairs (few: neighbours) bracket F's roots on a grid (`_trig_roots`).
+  safeguarded Newton — only where the window meets a free arc of i, and the window of j where that
+  tangent touches j (the same construction from j's side) a free arc of j: the graph drops the rest.
+  Close pairs (few: neighbours) bracket F's roots on a grid (`_trig_roots`).
 * Tangents from a terminal: at angles ∠q ± acos(1/|q|) for q the terminal in the unit-disc frame.
 * Arcs. Each ellipse's boundary is cut where another ellipse crosses it (‖M u(θ) + d‖² = 1, again a
   degree-2 trigonometric polynomial) or a map bound does (a cosine); between consecutive cuts an arc
