@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cvxnav.geometry import Ellipse, keep_out_scales
+from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
 
 
 @settings(max_examples=80, deadline=None)
@@ -42,6 +42,20 @@ def test_an_ellipse_s_cached_centre_and_semi_axes_cannot_be_changed_in_place():
         with pytest.raises(ValueError, match="read-only"):
             cached[0] += 1.0
     assert ellipse.center == pytest.approx([1.0, 2.0]) and ellipse.semi_axes == pytest.approx([3.0, 0.5])
+
+
+def test_a_stack_is_kept_for_the_same_ellipses_and_neither_can_be_changed_in_place():
+    ellipses = [
+        Ellipse.circle(center=[0.0, 0.0], radius=1.0),
+        Ellipse.from_axes(center=[3.0, 1.0], semi_axes=[2.0, 0.5], angle_rad=0.3),
+    ]
+    stack = EllipseStack.of(ellipses)
+    assert EllipseStack.of(list(ellipses)) is stack  # the same ellipses: the stack (and its caches) again
+    assert EllipseStack.of([Ellipse(A=e.A, b=e.b) for e in ellipses]) is not stack  # equal, not the same
+    for array in (ellipses[1].A, ellipses[1].b, stack.A, stack.b):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] += 1.0
+    assert np.array_equal(stack.A[1], ellipses[1].A) and np.array_equal(stack.b[1], ellipses[1].b)
 
 
 def test_growing_a_disc_adds_the_margin_to_its_radius():
