@@ -187,11 +187,21 @@ class EllipseStack:
     def _tree(self) -> cKDTree:
         return cKDTree(self.centers)
 
+    @cached_property
+    def _columns(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """A's two columns and b, each (2, m), component first: Aⱼ z + bⱼ = c₁ⱼ x + c₂ⱼ y + bⱼ.
+
+        The kernels below work on these with plain products: on a few hundred numbers einsum's
+        parsing costs more than its arithmetic (a segment against 128 ellipses: 28 µs, was 49).
+        The sums are formed in the same order, so the results are the same to the bit.
+        """
+        return tuple(np.ascontiguousarray(c.T) for c in (self.A[:, :, 0], self.A[:, :, 1], self.b))
+
     def levels(self, points: ArrayLike) -> FloatArray:
         """‖Aⱼ zᵢ + bⱼ‖ as an (n_points, m) array."""
         z = np.atleast_2d(np.asarray(points, dtype=float))
-        u = np.einsum("mij,nj->nmi", self.A, z) + self.b[None, :, :]
-        return np.linalg.norm(u, axis=2)
+        u = _affine([c[:, None, :] for c in self._columns], z[:, 0, None], z[:, 1, None])
+        return np.sqrt(_dot(u, u))
 
     def segment_levels(self, starts: ArrayLike, ends: ArrayLike) -> FloatArray:
         """min over t ∈ [0, 1] of ‖Aⱼ (p + t (q − p)) + bⱼ‖ for each segment p→q: (n_segments, m).
@@ -202,13 +212,16 @@ class EllipseStack:
         ellipse.
         """
         p = np.atleast_2d(np.asarray(starts, dtype=float))
-        q = np.atleast_2d(np.asarray(ends, dtype=float))
-        return _segment_minimum(np.einsum("mij,nj->nmi", self.A, p) + self.b, np.einsum("mij,nj->nmi", self.A, q - p))
+        d = np.atleast_2d(np.asarray(ends, dtype=float)) - p
+        columns = [c[:, None, :] for c in self._columns]
+        return _segment_minimum(
+            _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
+        )
 
     def _pair_segment_levels(self, p: FloatArray, q: FloatArray, rows: FloatArray, cols: FloatArray) -> FloatArray:
-        A = self.A[cols]
-        u0 = np.einsum("kij,kj->ki", A, p[rows]) + self.b[cols]
-        return _segment_minimum(u0, np.einsum("kij,kj->ki", A, q[rows] - p[rows]))
+        columns = [c[:, cols] for c in self._columns]
+        z, d = p[rows], q[rows] - p[rows]
+        return _segment_minimum(_affine(columns, z[:, 0], z[:, 1]), _affine(columns, d[:, 0], d[:, 1], shift=False))
 
     def near_pairs(self, centers: FloatArray, radii: FloatArray, *, run: int = 1) -> tuple[FloatArray, FloatArray]:
         """Pairs (i, j) where the disc (centers[i], radii[i]) meets ellipse j's bounding disc, by row
@@ -246,8 +259,8 @@ class EllipseStack:
         z = np.atleast_2d(np.asarray(points, dtype=float))
         rows, cols = self.near_pairs(z, np.zeros(len(z)))
         out = np.full(len(z), np.inf)
-        u = np.einsum("kij,kj->ki", self.A[cols], z[rows]) + self.b[cols]
-        np.minimum.at(out, rows, np.linalg.norm(u, axis=1))
+        u = _affine([c[:, cols] for c in self._columns], z[rows, 0], z[rows, 1])
+        np.minimum.at(out, rows, np.sqrt(_dot(u, u)))
         return out
 
     def min_segment_levels(
@@ -286,11 +299,25 @@ def _stack_of(ellipses: tuple[Ellipse, ...]) -> EllipseStack:
     return EllipseStack(A=_frozen(rows[:, :4].copy().reshape(-1, 2, 2)), b=_frozen(rows[:, 4:].copy()))
 
 
+def _affine(columns: list[FloatArray], x: FloatArray, y: FloatArray, *, shift: bool = True) -> FloatArray:
+    """c₁ x + c₂ y (+ b) for `columns` (c₁, c₂, b) from `EllipseStack._columns`: A z (+ b), component first."""
+    c1, c2, b = columns
+    u = c1 * x + c2 * y
+    return u + b if shift else u
+
+
+def _dot(u: FloatArray, v: FloatArray) -> FloatArray:
+    """u · v over the first axis (the two components)."""
+    w = u * v
+    return w[0] + w[1]
+
+
 def _segment_minimum(u0: FloatArray, v: FloatArray) -> FloatArray:
-    """min over t ∈ [0, 1] of ‖u₀ + t v‖ along the last axis (segments in unit-disc frames)."""
-    vv = np.einsum("...i,...i->...", v, v)
-    t = np.clip(-np.einsum("...i,...i->...", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
-    return np.linalg.norm(u0 + t[..., None] * v, axis=-1)
+    """min over t ∈ [0, 1] of ‖u₀ + t v‖ over the first axis (segments in unit-disc frames)."""
+    vv = _dot(v, v)
+    t = np.minimum(np.maximum(-_dot(u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0), 1.0)  # clipped to [0, 1]
+    w = u0 + t * v
+    return np.sqrt(_dot(w, w))
 
 
 def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) -> FloatArray:
