@@ -17,7 +17,7 @@ from typing import Literal
 import numpy as np
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
-from services.planner.refine import RefineSettings, SolverFailure, refine, resample_legs
+from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
 from services.planner.route import tangent_route
 from services.smoother.core import Smoothed
 
@@ -52,25 +52,32 @@ def _straight(
     bounds_max: FloatArray,
     settings: RefineSettings,
 ) -> PathPlan | None:
-    """The straight line start → goals when it needs no turn and clears every ellipse, else None."""
+    """The straight line start → goals when it needs no turn and clears every ellipse, else None.
+
+    Sampled as `resample_legs` samples the legs: each leg gets its share of the points evenly spaced
+    in arc length, p + d s (d the unit direction, s = k L / count), and ends at its goal exactly.
+    Formed here from the directions and lengths already at hand, without its interpolation (91 µs).
+    """
     reference = np.vstack([start, goals])
-    if np.any(reference < bounds_min) or np.any(reference > bounds_max):
+    if (reference < bounds_min).any() or (reference > bounds_max).any():
         return None
-    steps = np.diff(reference, axis=0)
+    steps = reference[1:] - reference[:-1]
     lengths = np.linalg.norm(steps, axis=1)
-    if np.any(lengths <= 0.0):
+    if (lengths <= 0.0).any():
         return None
     directions = steps / lengths[:, None]
-    if heading_rad is not None:
-        directions = np.vstack([[np.cos(heading_rad), np.sin(heading_rad)], directions])
-    if np.any(np.einsum("ij,ij->i", directions[:-1], directions[1:]) < np.cos(_STRAIGHT_TOLERANCE_RAD)):
+    turns = directions if heading_rad is None else np.vstack([[np.cos(heading_rad), np.sin(heading_rad)], directions])
+    if ((turns[:-1] * turns[1:]).sum(axis=1) < np.cos(_STRAIGHT_TOLERANCE_RAD)).any():
         return None
     # A leg or two against every ellipse: the exact test on all pairs is cheaper than a broad phase.
-    if len(stack) and np.min(stack.segment_levels(reference[:-1], reference[1:])) < settings.level:
+    if len(stack) and stack.segment_levels(reference[:-1], reference[1:]).min() < settings.level:
         return None
     n = int(np.ceil(lengths.sum() / settings.spacing_m)) + 1
-    points, goal_indices = resample_legs([reference[k : k + 2] for k in range(len(goals))], n=max(n, len(goals) + 2))
-    return PathPlan("ok", points, goal_indices)
+    counts = leg_counts(lengths, n=max(n, len(goals) + 2))
+    pieces = [reference[:1]]
+    for p, goal, direction, length, count in zip(reference[:-1], goals, directions, lengths, counts):
+        pieces += [p + direction * (np.arange(1, count) * (length / count))[:, None], goal[None]]
+    return PathPlan("ok", np.vstack(pieces), tuple(np.cumsum(counts).tolist()))
 
 
 def _route(
@@ -126,9 +133,6 @@ def plan_path(
     start = np.asarray(start, dtype=float)
     goals = np.atleast_2d(np.asarray(goals, dtype=float))
     stack = EllipseStack.of(ellipses)
-    if len(stack) and np.min(stack.levels(np.vstack([start, goals]))) < 1.0:
-        inside = "start" if np.min(stack.levels(start)) < 1.0 else "a goal"
-        return PathPlan("no_path", np.zeros((0, 2)), reason=f"{inside} lies inside an obstacle's grown ellipse")
     straight = _straight(
         start=start,
         heading_rad=heading_rad,
@@ -138,6 +142,12 @@ def plan_path(
         bounds_max=bounds_max,
         settings=settings,
     )
+    # A line clear of every ellipse at a level above 1 has its ends outside them: no need to check.
+    if straight is not None and settings.level > 1.0:
+        return straight
+    if len(stack) and np.min(stack.levels(np.vstack([start, goals]))) < 1.0:
+        inside = "start" if np.min(stack.levels(start)) < 1.0 else "a goal"
+        return PathPlan("no_path", np.zeros((0, 2)), reason=f"{inside} lies inside an obstacle's grown ellipse")
     if straight is not None:
         return straight
     radius = 1.0 / (settings.curvature_factor * max_curvature)

@@ -354,13 +354,19 @@ def _bucket(n: int) -> int:
     return int(32 * np.ceil(n / 32))
 
 
-def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[int, ...]]:
-    """Resample consecutive legs (each a polyline) to `n` points in all, in proportion to leg length."""
-    lengths = np.array([max(polyline_length(leg), 1e-9) for leg in legs])
+def leg_counts(lengths: FloatArray, *, n: int) -> FloatArray:
+    """How many of `n` points (the first one aside) each leg gets: in proportion to its length, at least one."""
+    lengths = np.maximum(lengths, 1e-9)
     counts = np.maximum(1, np.round((n - 1) * lengths / lengths.sum()).astype(int))
     counts[-1] = (n - 1) - counts[:-1].sum()
     if counts[-1] < 1:
         raise ValueError("too few points for the number of legs")
+    return counts
+
+
+def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[int, ...]]:
+    """Resample consecutive legs (each a polyline) to `n` points in all, in proportion to leg length."""
+    counts = leg_counts(np.array([polyline_length(leg) for leg in legs]), n=n)
     out = [legs[0][:1]]
     goal_indices = []
     for leg, count in zip(legs, counts):

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from cvxnav.geometry import Ellipse, EllipseStack, polyline_length
 from services.planner.core import intersected, plan_path
-from services.planner.refine import RefineSettings
+from services.planner.refine import RefineSettings, resample_legs
 from services.planner.route import _Arcs, _cuts, _DeepCells, _Frames, _pair_tangents, tangent_route
 
 BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]))
@@ -151,6 +151,42 @@ def test_enclosed_goal_is_no_path():
     )
     assert plan.status == "no_path"
     assert "blocked" in plan.reason
+
+
+@pytest.mark.parametrize("inside, start, goals", [
+    ("start", [5.0, 0.2], [[10.0, 0.2]]),
+    ("a goal", [0.0, 0.2], [[5.0, 0.2], [10.0, 0.2]]),
+])
+def test_a_start_or_goal_inside_an_ellipse_is_no_path_with_the_reason(inside, start, goals):
+    plan = plan_path(
+        start=np.array(start),
+        heading_rad=0.0,
+        goals=np.array(goals),
+        ellipses=[Ellipse.circle(center=[5.0, 0.0], radius=1.0)],
+        max_curvature=2.0,
+        **BOX,
+    )
+    assert plan.status == "no_path"
+    assert plan.reason == f"{inside} lies inside an obstacle's grown ellipse"
+
+
+def test_a_clear_straight_reference_is_returned_as_resample_legs_samples_it():
+    start, goals = np.array([0.0, 1.0]), np.array([[3.0, 5.0], [4.5, 7.0], [7.5, 11.0]])  # collinear, heading along
+    settings = RefineSettings()
+    plan = plan_path(
+        start=start,
+        heading_rad=np.arctan2(4.0, 3.0),
+        goals=goals,
+        ellipses=[Ellipse.circle(center=[5.0, 0.0], radius=1.0)],
+        max_curvature=2.0,
+        settings=settings,
+        **BOX,
+    )
+    reference = np.vstack([start, goals])
+    n = int(np.ceil(polyline_length(reference) / settings.spacing_m)) + 1
+    points, goal_indices = resample_legs([reference[k : k + 2] for k in range(len(goals))], n=n)
+    assert plan.status == "ok" and plan.iterations == 0  # no refinement
+    assert np.array_equal(plan.points, points) and plan.goal_indices == goal_indices
 
 
 def test_refined_path_honours_heading_curvature_and_goals_in_order():
