@@ -355,12 +355,19 @@ def _bucket(n: int) -> int:
 
 
 def leg_counts(lengths: FloatArray, *, n: int) -> FloatArray:
-    """How many of `n` points (the first one aside) each leg gets: in proportion to its length, at least one."""
+    """How many of `n` points (the first one aside) each leg gets: in proportion to its length, at least one.
+
+    The last leg gets what the others leave. When rounding up the others leaves it none (a short last
+    leg), the points it lacks come from the legs with the most.
+    """
+    if n - 1 < len(lengths):
+        raise ValueError("too few points for the number of legs")
     lengths = np.maximum(lengths, 1e-9)
     counts = np.maximum(1, np.round((n - 1) * lengths / lengths.sum()).astype(int))
     counts[-1] = (n - 1) - counts[:-1].sum()
-    if counts[-1] < 1:
-        raise ValueError("too few points for the number of legs")
+    while counts[-1] < 1:
+        counts[int(np.argmax(counts[:-1]))] -= 1
+        counts[-1] += 1
     return counts
 
 

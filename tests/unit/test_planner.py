@@ -274,3 +274,15 @@ def test_a_solve_that_clears_the_curvature_slack_without_moving_the_path_ends_th
     tight = refine(**kwargs, settings=RefineSettings(rel_tolerance=1e-6))
     assert tight.iterations > 2
     assert polyline_length(refined.points) <= 1.001 * polyline_length(tight.points)
+
+
+def test_a_short_last_leg_still_gets_its_points():
+    """Three collinear goals whose last leg is 1 cm: rounding the longer legs' shares up used to leave
+    it no point, and a clear straight reference raised instead of being planned."""
+    goals = np.array([[10.0, 0.0], [10.01, 0.0]])
+    plan = plan_path(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals,
+                     ellipses=[Ellipse.circle(center=[5.0, 3.0], radius=1.0)], max_curvature=1.0, **BOX)
+    assert plan.status == "ok" and plan.iterations == 0
+    first, last = plan.goal_indices
+    assert first < last == len(plan.points) - 1
+    np.testing.assert_array_equal(plan.points[[first, last]], goals)
