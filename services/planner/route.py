@@ -581,7 +581,7 @@ class _DeepCells:
     def blocked(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Whether a point of segment p→q, sampled one cell apart, lies in a marked cell."""
         d = q - p
-        count = np.ceil(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) / self.cell).astype(int) + 2
+        count = np.ceil(_distance(q, p) / self.cell).astype(int) + 2
         skip = np.cumsum(count) - count
         t = np.arange(count.sum()) - np.repeat(skip, count)  # sample k of count, then scaled to [0, 1]
         t = t * np.repeat(1.0 / (count - 1), count)
