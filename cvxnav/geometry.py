@@ -161,6 +161,11 @@ class EllipseStack:
         """
         return _stack_of(tuple(ellipses))
 
+    @staticmethod
+    def forget() -> None:
+        """Drop the stacks `of` keeps, so the next one is built afresh (benchmarks time that build)."""
+        _stack_of.cache_clear()
+
     def __len__(self) -> int:
         return self.A.shape[0]
 

@@ -19,9 +19,9 @@ from schemas.files import EllipseModel, PlanFile, PlanTimings
 from schemas.scenario import Scenario
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.gap import group_ellipses
-from services.planner.core import plan_until_verified
+from services.planner.core import PathPlan, plan_until_verified
 from services.planner.refine import RefineSettings
-from services.smoother.core import smooth
+from services.smoother.core import Smoothed, smooth
 
 
 @dataclass(frozen=True)
@@ -59,17 +59,12 @@ def fit_known_obstacles(
     return ellipses, np.repeat(np.arange(len(covers)), [len(cover) for cover in covers])
 
 
-def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()) -> PlanFile:
-    """Plan once on the scenario's known map; the result is verified or reported as `no_path`."""
-    clock = _Clock()
-    t0 = time.perf_counter()
-    raw, pieces = fit_known_obstacles(scenario, settings=settings, clock=clock)
-    with clock.stage("group"):
-        # Obstacles closer than the robot's passage width are one obstacle to the planner; their
-        # grown ellipses overlap, so the route search treats them as one wall.
-        group_ellipses(raw, min_gap_m=2.0 * scenario.inflation_m, connected=pieces)
-        grown = [e.grown(scenario.inflation_m) for e in raw]
-
+def plan_on_model(
+    scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None
+) -> tuple[PathPlan, Smoothed | None]:
+    """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
+    `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
+    on the model every planner is handed."""
     problem = dict(
         start=np.array(scenario.start.xy),
         heading_rad=scenario.start.theta,
@@ -79,11 +74,11 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         bounds_max=np.array(scenario.bounds.max),
         max_curvature=scenario.max_curvature,
     )
-    plan, smoothed = plan_until_verified(
+    return plan_until_verified(
         **problem,
         settings=settings.refine,
         repairs=settings.repairs,
-        timer=clock.stage,
+        timer=(clock or _Clock()).stage,
         smooth_fn=lambda points: smooth(
             points,
             ellipses=grown,
@@ -95,6 +90,20 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
             bounds_max=problem["bounds_max"],
         ),
     )
+
+
+def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()) -> PlanFile:
+    """Plan once on the scenario's known map; the result is verified or reported as `no_path`."""
+    clock = _Clock()
+    t0 = time.perf_counter()
+    raw, pieces = fit_known_obstacles(scenario, settings=settings, clock=clock)
+    with clock.stage("group"):
+        # Obstacles closer than the robot's passage width are one obstacle to the planner; their
+        # grown ellipses overlap, so the route search treats them as one wall.
+        group_ellipses(raw, min_gap_m=2.0 * scenario.inflation_m, connected=pieces)
+        grown = [e.grown(scenario.inflation_m) for e in raw]
+
+    plan, smoothed = plan_on_model(scenario, grown, settings=settings, clock=clock)
     ok = plan.status == "ok" and smoothed is not None and smoothed.verification.ok
     for name in ("cluster", "fit", "group", "optimize", "smooth"):
         clock.ms.setdefault(name, 0.0)

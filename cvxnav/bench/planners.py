@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from cvxnav.bench.problem import BenchProblem
-from cvxnav.geometry import Ellipse, FloatArray, polyline_length, resample_polyline
+from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
 
 
 @dataclass(frozen=True)
@@ -52,21 +52,22 @@ def peer_status() -> dict[str, str]:
 
 
 def plan_cvxnav(problem: BenchProblem) -> Attempt:
-    """cvxnav's known-map pipeline (`cvxnav.plan.plan_scenario`) on the scenario.
+    """cvxnav's planning on the model every planner is handed: optimise + smooth (`cvxnav.plan.plan_on_model`,
+    the planning half of `cvxnav plan`), the smoothed curve verified or no path.
 
-    The time is its optimise + smooth stages: planning on the grown-ellipse model, the same work the
-    peers are timed for. The fit (cluster, cover, group) is reported apart in `extra['fit_ms']`,
-    because every peer is handed the fitted model for free.
+    Timed as the peers are, on `problem.grown` (the fit excluded); unlike them, the time includes building
+    the planner's arrays of the ellipses (`EllipseStack`): the stacks kept from the last call are dropped first.
     """
-    from cvxnav.plan import plan_scenario
+    from cvxnav.plan import plan_on_model
 
-    plan = plan_scenario(problem.scenario)
-    t = plan.timings_ms
-    extra = {"fit_ms": t.cluster + t.fit + t.group, "total_ms": t.total}
-    plan_s = 1e-3 * (t.optimize + t.smooth)
-    if plan.status != "ok":
-        return Attempt(path=None, time_s=plan_s, reason="cvxnav: no_path", extra=extra)
-    return Attempt(path=np.array(plan.path), time_s=plan_s, extra=extra)
+    EllipseStack.forget()
+    t0 = time.perf_counter()
+    plan, smoothed = plan_on_model(problem.scenario, problem.grown)
+    elapsed = time.perf_counter() - t0
+    if smoothed is None or not smoothed.verification.ok:
+        why = plan.reason if smoothed is None else smoothed.verification.reason
+        return Attempt(path=None, time_s=elapsed, reason=f"cvxnav: no_path ({why})")
+    return Attempt(path=smoothed.points, time_s=elapsed)
 
 
 def plan_optimum(problem: BenchProblem) -> Attempt:

@@ -156,7 +156,7 @@ def summarise(spec: PlannerSpec, problem: BenchProblem, attempts: list[Attempt],
 def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]) -> list[PlannerSpec]:
     specs = [
         PlannerSpec(CVXNAV, lambda p, s: planners.plan_cvxnav(p), options.repeats,
-              "warm optimise + smooth on the grown ellipses (fit excluded, as for every planner); heading + curvature honoured",
+              "optimise + smooth on the grown ellipses (fit excluded, as for every planner; its EllipseStack rebuilt each call); heading + curvature honoured",
               cold=True),
         PlannerSpec(PAPER, lambda p, s: planners.plan_paper(p), options.repeats, "straight line, detours, Bézier; nothing verified"),
     ]

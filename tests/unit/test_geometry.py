@@ -58,6 +58,13 @@ def test_a_stack_is_kept_for_the_same_ellipses_and_neither_can_be_changed_in_pla
     assert np.array_equal(stack.A[1], ellipses[1].A) and np.array_equal(stack.b[1], ellipses[1].b)
 
 
+def test_forget_drops_the_kept_stacks():
+    ellipses = [Ellipse.circle(center=[0.0, 0.0], radius=1.0)]
+    stack = EllipseStack.of(ellipses)
+    EllipseStack.forget()
+    assert EllipseStack.of(ellipses) is not stack
+
+
 def test_growing_a_disc_adds_the_margin_to_its_radius():
     grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
     assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
