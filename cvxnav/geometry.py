@@ -8,6 +8,7 @@ same question about the unit circle.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from itertools import chain
@@ -222,6 +223,23 @@ class EllipseStack:
         return _segment_minimum(
             _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
         )
+
+    def polyline_level(self, points: ArrayLike) -> float:
+        """min over a short polyline's segments and every ellipse of the `segment_levels` level (+inf
+        without ellipses): the exact test on all pairs, a segment at a time with its ends as plain
+        floats. For a leg or two (a straight reference, a chord) that is cheaper than a broad phase or
+        the batched kernel, and the same arithmetic, to the bit."""
+        if len(self) == 0:
+            return math.inf
+        level = math.inf
+        xy = np.asarray(points, dtype=float).tolist()
+        for (px, py), (qx, qy) in zip(xy, xy[1:]):
+            u0 = _affine(self._columns, px, py)
+            v = _affine(self._columns, qx - px, qy - py, shift=False)
+            here = float(_segment_minimum(u0, v).min())
+            if not here >= level:  # (a NaN is kept: it fails every test)
+                level = here
+        return level
 
     def _pair_segment_levels(self, p: FloatArray, q: FloatArray, rows: FloatArray, cols: FloatArray) -> FloatArray:
         columns = [c[:, cols] for c in self._columns]

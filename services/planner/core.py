@@ -8,10 +8,11 @@ sampled like a refined path, without running the refinement.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
-from itertools import chain
+from itertools import accumulate, chain
 from typing import Literal
 
 import numpy as np
@@ -22,7 +23,7 @@ from services.planner.route import tangent_route
 from services.smoother.core import Smoothed
 
 
-_STRAIGHT_TOLERANCE_RAD = 1e-6  # legs and heading this close to parallel need no turn
+_STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel need no turn
 
 
 @dataclass(frozen=True)
@@ -56,28 +57,37 @@ def _straight(
 
     Sampled as `resample_legs` samples the legs: each leg gets its share of the points evenly spaced
     in arc length, p + d s (d the unit direction, s = k L / count), and ends at its goal exactly.
-    Formed here from the directions and lengths already at hand, without its interpolation (91 µs).
+    Formed here from the directions and lengths already at hand, without its interpolation. The few
+    waypoints are plain floats until the sampling: the same arithmetic as numpy's on them, without
+    the cost of a numpy call per step (the whole test was 4× slower so).
     """
-    reference = np.vstack([start, goals])
-    if (reference < bounds_min).any() or (reference > bounds_max).any():
+    waypoints = [start.tolist(), *goals.tolist()]
+    (x_min, y_min), (x_max, y_max) = bounds_min.tolist(), bounds_max.tolist()
+    if not all(x_min <= x <= x_max and y_min <= y <= y_max for x, y in waypoints):
         return None
-    steps = reference[1:] - reference[:-1]
-    lengths = np.linalg.norm(steps, axis=1)
-    if (lengths <= 0.0).any():
-        return None
-    directions = steps / lengths[:, None]
-    turns = directions if heading_rad is None else np.vstack([[np.cos(heading_rad), np.sin(heading_rad)], directions])
-    if ((turns[:-1] * turns[1:]).sum(axis=1) < np.cos(_STRAIGHT_TOLERANCE_RAD)).any():
+    legs = []  # (dx, dy, length) of each leg
+    for (x0, y0), (x1, y1) in zip(waypoints, waypoints[1:]):
+        dx, dy = x1 - x0, y1 - y0
+        length = math.sqrt(dx * dx + dy * dy)  # as np.linalg.norm forms it
+        if length <= 0.0:
+            return None
+        legs.append((dx / length, dy / length, length))
+    turns = [(ux, uy) for ux, uy, _ in legs]
+    if heading_rad is not None:
+        turns.insert(0, (math.cos(heading_rad), math.sin(heading_rad)))
+    if any(ux * vx + uy * vy < _STRAIGHT_COS for (ux, uy), (vx, vy) in zip(turns, turns[1:])):
         return None
     # A leg or two against every ellipse: the exact test on all pairs is cheaper than a broad phase.
-    if len(stack) and stack.segment_levels(reference[:-1], reference[1:]).min() < settings.level:
+    if not stack.polyline_level(waypoints) >= settings.level:
         return None
-    n = int(np.ceil(lengths.sum() / settings.spacing_m)) + 1
+    reference = np.vstack([start, goals])
+    lengths = [length for _, _, length in legs]
+    n = math.ceil(sum(lengths) / settings.spacing_m) + 1
     counts = leg_counts(lengths, n=max(n, len(goals) + 2))
     pieces = [reference[:1]]
-    for p, goal, direction, length, count in zip(reference[:-1], goals, directions, lengths, counts):
-        pieces += [p + direction * (np.arange(1, count) * (length / count))[:, None], goal[None]]
-    return PathPlan("ok", np.vstack(pieces), tuple(np.cumsum(counts).tolist()))
+    for p, goal, (ux, uy, length), count in zip(reference[:-1], reference[1:], legs, counts):
+        pieces += [p + np.array([ux, uy]) * (np.arange(1, count) * (length / count))[:, None], goal[None]]
+    return PathPlan("ok", np.vstack(pieces), tuple(accumulate(counts)))
 
 
 def _route(

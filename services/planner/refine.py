@@ -32,6 +32,7 @@ outside every ellipse, the smoother's proof on the continuous curve) decide what
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -354,26 +355,28 @@ def _bucket(n: int) -> int:
     return int(32 * np.ceil(n / 32))
 
 
-def leg_counts(lengths: FloatArray, *, n: int) -> FloatArray:
+def leg_counts(lengths: Sequence[float], *, n: int) -> list[int]:
     """How many of `n` points (the first one aside) each leg gets: in proportion to its length, at least one.
 
     The last leg gets what the others leave. When rounding up the others leaves it none (a short last
-    leg), the points it lacks come from the legs with the most.
+    leg), the points it lacks come from the legs with the most. (A handful of legs: plain floats, with
+    numpy's rounding, half to even.)
     """
     if n - 1 < len(lengths):
         raise ValueError("too few points for the number of legs")
-    lengths = np.maximum(lengths, 1e-9)
-    counts = np.maximum(1, np.round((n - 1) * lengths / lengths.sum()).astype(int))
-    counts[-1] = (n - 1) - counts[:-1].sum()
+    lengths = [max(length, 1e-9) for length in lengths]
+    total = sum(lengths)
+    counts = [max(1, round((n - 1) * length / total)) for length in lengths[:-1]]
+    counts.append((n - 1) - sum(counts))
     while counts[-1] < 1:
-        counts[int(np.argmax(counts[:-1]))] -= 1
+        counts[counts.index(max(counts[:-1]))] -= 1
         counts[-1] += 1
     return counts
 
 
 def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[int, ...]]:
     """Resample consecutive legs (each a polyline) to `n` points in all, in proportion to leg length."""
-    counts = leg_counts(np.array([polyline_length(leg) for leg in legs]), n=n)
+    counts = leg_counts([polyline_length(leg) for leg in legs], n=n)
     out = [legs[0][:1]]
     goal_indices = []
     for leg, count in zip(legs, counts):

@@ -65,6 +65,20 @@ def test_forget_drops_the_kept_stacks():
     assert EllipseStack.of(ellipses) is not stack
 
 
+def test_a_polyline_s_level_is_the_least_segment_level_to_the_bit():
+    rng = np.random.default_rng(3)
+    stack = EllipseStack.of([
+        Ellipse.from_axes(center=c, semi_axes=a, angle_rad=t)
+        for c, a, t in zip(rng.uniform(-5, 5, (40, 2)), rng.uniform(0.2, 2.0, (40, 2)), rng.uniform(0, np.pi, 40))
+    ])
+    for _ in range(50):
+        points = rng.uniform(-8, 8, (int(rng.integers(2, 5)), 2))
+        assert stack.polyline_level(points) == stack.segment_levels(points[:-1], points[1:]).min()
+    assert stack.polyline_level([[1.0, 1.0], [1.0, 1.0]]) == stack.levels([[1.0, 1.0]]).min()  # a point
+    assert np.isnan(stack.polyline_level([[0.0, 0.0], [np.nan, 1.0], [3.0, 3.0]]))  # kept, to fail every test
+    assert EllipseStack.of([]).polyline_level([[0.0, 0.0], [1.0, 1.0]]) == np.inf
+
+
 def test_growing_a_disc_adds_the_margin_to_its_radius():
     grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
     assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
