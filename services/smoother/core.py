@@ -21,6 +21,7 @@ The curve is published only if `verify` passes on the continuous curve:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,29 +133,32 @@ def _judge(
     def fail(reason: str) -> Verification:
         return Verification(False, min_level, max_kappa, reason)
 
-    if min_level <= 1.0:
+    if not min_level > 1.0:  # (NaN fails)
         return fail(f"curve enters an ellipse (level {min_level:.4f} <= 1)")
-    if max_kappa > max_curvature:
+    if not max_kappa <= max_curvature:
         return fail(f"curvature {max_kappa:.3f} exceeds the bound {max_curvature:.3f} 1/m")
-    # Written with methods and plain products rather than np.any, np.clip and np.linalg.norm: the same
-    # arithmetic, but their wrappers cost more than the tests on a few hundred points.
-    if np.linalg.norm(z[0] - start) > 1e-6:
+    # Plain floats for the few numbers, and one pass per test over the samples: the same tests, but
+    # numpy's wrappers (np.linalg.norm, np.any, np.clip) cost more than the arithmetic here.
+    (x0, y0), (sx, sy) = z[0].tolist(), np.asarray(start, dtype=float).tolist()
+    if not math.hypot(x0 - sx, y0 - sy) <= 1e-6:
         return fail("curve does not start at the start")
     if heading_rad is not None:
-        alignment = float(direction @ np.array([np.cos(heading_rad), np.sin(heading_rad)]))
-        misalignment = np.arccos(min(max(alignment, -1.0), 1.0))
-        if misalignment > 1e-3:
+        ux, uy = direction.tolist()
+        alignment = ux * math.cos(heading_rad) + uy * math.sin(heading_rad)
+        misalignment = math.acos(min(max(alignment, -1.0), 1.0))
+        if not misalignment <= 1e-3:
             return fail(f"curve leaves the start {misalignment:.4f} rad off the heading")
-    if ((z < np.asarray(bounds_min) - 1e-9) | (z > np.asarray(bounds_max) + 1e-9)).any():
+    if not (float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9):  # (NaN fails)
         return fail("curve leaves the map bounds")
+    x, y = z.T
     cursor = 0
-    for k, goal in enumerate(np.atleast_2d(goals)):
-        offsets = (z[cursor:] - goal).T
-        distances = np.sqrt(offsets[0] * offsets[0] + offsets[1] * offsets[1])
-        hits = np.flatnonzero(distances <= goal_tolerance_m)
-        if len(hits) == 0:
+    for k, (gx, gy) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
+        dx, dy = x[cursor:] - gx, y[cursor:] - gy
+        distances = np.sqrt(dx * dx + dy * dy)
+        first = int(np.argmax(distances <= goal_tolerance_m))  # the first sample within tolerance, or 0
+        if not distances[first] <= goal_tolerance_m:  # (NaN included)
             return fail(f"curve misses goal {k} by {distances.min():.3f} m")
-        cursor += int(hits[0])
+        cursor += first
     return Verification(True, min_level, max_kappa)
 
 
@@ -179,23 +183,23 @@ def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
     control points (the phantom ends mirror z₁ and zₙ₋₁ and stay within δ too), and its progress
     along the chord is the B-spline of increasing values — increasing from z₀ to zₙ, no cusp. On
     uniform knots h apart B′ = Σ Δcᵢ Nᵢ/h and B″ = Σ Δ²cᵢ Nᵢ/h² (convex weights), so with steps
-    along the chord ≥ s, |Δ² along| ≤ a and normal offsets within δ: |B′| ≥ s/h, |B′ₙ| ≤ 2δ/h,
-    |B″ₙ| ≤ 4δ/h², |B″ₜ| ≤ a/h², and κ = |B′ × B″|/|B′|³ ≤ (4δ + 2δ a/s)/s².
+    along the chord in [s, S] (so |Δ² along| ≤ a = S − s) and normal offsets within δ: |B′| ≥ s/h,
+    |B′ₙ| ≤ 2δ/h, |B″ₙ| ≤ 4δ/h², |B″ₜ| ≤ a/h², and κ = |B′ × B″|/|B′|³ ≤ (4δ + 2δ a/s)/s².
     """
-    chord = control[-1] - control[0]
-    length = float(np.linalg.norm(chord))
+    (x0, y0), (x1, y1) = control[0].tolist(), control[-1].tolist()
+    length = math.hypot(x1 - x0, y1 - y0)
     if length <= 0.0:
         return None
-    direction = chord / length
-    relative = control - control[0]
-    along = relative @ direction
+    ux, uy = (x1 - x0) / length, (y1 - y0) / length
+    # Each point's progress along the chord and its offset from it, in one product.
+    along, normal = np.array([[ux, uy], [-uy, ux]]) @ (control - control[0]).T
     steps = along[1:] - along[:-1]
-    offset = float(np.abs(relative @ np.array([-direction[1], direction[0]])).max())
-    if offset > 1e-9 * max(length, 1.0) or (steps <= 0.0).any():
-        return None
+    offset = float(np.abs(normal).max())
     shortest = float(steps.min())
-    bend = float(np.abs(steps[1:] - steps[:-1]).max(initial=0.0))
-    return direction, offset, (4.0 * offset + 2.0 * offset * bend / shortest) / shortest**2
+    if not (offset <= 1e-9 * max(length, 1.0) and shortest > 0.0):  # (NaN is not straight)
+        return None
+    bend = float(steps.max()) - shortest
+    return np.array([ux, uy]), offset, (4.0 * offset + 2.0 * offset * bend / shortest) / shortest**2
 
 
 def smooth(
@@ -262,17 +266,17 @@ def _smooth_straight(
 ) -> Smoothed:
     """A straight curve (see `_straight`): one eq. 2 segment test proves it clear, widened by its offset
     from the chord; the other checks run on its samples, which are the points published."""
-    length = float(np.linalg.norm(end - start))
-    t = np.linspace(0.0, 1.0, _sample_count(length, spacing_m=output_spacing_m))
+    count = _sample_count(math.dist(start.tolist(), end.tolist()), spacing_m=output_spacing_m)
+    t = np.arange(count) * (1.0 / (count - 1))  # np.linspace(0, 1, count), without its overhead
+    t[-1] = 1.0
     points = start + t[:, None] * (end - start)
     min_level = np.inf
     if ellipses:
-        # One segment against every ellipse (no broad phase needed). The offset is scaled into each
-        # ellipse's frame by ‖Aⱼ‖_F, an upper bound on the ‖Aⱼ‖₂ (`EllipseStack.stretch`) that
-        # `EllipseStack.min_segment_levels` scales a sag by: never a looser test than that one.
+        # One segment against every ellipse (no broad phase needed), less the offset from the chord scaled
+        # into the ellipses' frames by 2 max|aᵢⱼ| ≥ ‖Aⱼ‖_F ≥ ‖Aⱼ‖₂ (`EllipseStack.stretch`, what
+        # `EllipseStack.min_segment_levels` scales a sag by): never a looser test than that one.
         stack = EllipseStack.of(ellipses)
-        levels = stack.segment_levels(start[None], end[None])[0] - offset_m * np.linalg.norm(stack.A, axis=(1, 2))
-        min_level = float(np.min(levels))
+        min_level = stack.polyline_level([start, end]) - offset_m * 2.0 * float(np.abs(stack.A).max())
     verification = _judge(
         points,
         direction=direction,

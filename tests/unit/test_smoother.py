@@ -107,3 +107,16 @@ def test_straight_control_points_are_judged_as_the_chord_they_are():
     assert "enters an ellipse" in smooth(control, ellipses=[near, blocking], **common).verification.reason
     turned = dict(common, heading_rad=0.0)
     assert "heading" in smooth(control, ellipses=[near], **turned).verification.reason
+
+
+def test_a_nan_is_refused_and_a_curve_off_the_map_is_not_verified():
+    control = np.linspace([0.0, 0.0], [10.0, 10.0], 158)
+    common = dict(ellipses=[Ellipse.circle(center=[5.0, 0.0], radius=1.0)], max_curvature=1.0, heading_rad=np.pi / 4,
+                  goals=np.array([[10.0, 10.0]]), goal_tolerance_m=0.3)
+    assert smooth(control, **common, **BOUNDS).verification.ok
+    broken = control.copy()
+    broken[80, 1] = np.nan  # not taken for a straight chord (which would hide it): the curve check refuses it
+    with pytest.raises(ValueError, match="finite"):
+        smooth(broken, **common, **BOUNDS)
+    small = dict(bounds_min=np.array([-1.0, -1.0]), bounds_max=np.array([9.0, 11.0]))
+    assert smooth(control, **common, **small).verification.reason == "curve leaves the map bounds"
