@@ -62,7 +62,7 @@ def _straight(
     the cost of a numpy call per step (the whole test was 4× slower so).
     """
     waypoints = [start.tolist(), *goals.tolist()]
-    (x_min, y_min), (x_max, y_max) = bounds_min.tolist(), bounds_max.tolist()
+    (x_min, y_min), (x_max, y_max) = np.asarray(bounds_min, dtype=float).tolist(), np.asarray(bounds_max, dtype=float).tolist()
     if not all(x_min <= x <= x_max and y_min <= y <= y_max for x, y in waypoints):
         return None
     legs = []  # (dx, dy, length) of each leg

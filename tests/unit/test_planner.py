@@ -286,3 +286,10 @@ def test_a_short_last_leg_still_gets_its_points():
     first, last = plan.goal_indices
     assert first < last == len(plan.points) - 1
     np.testing.assert_array_equal(plan.points[[first, last]], goals)
+
+
+def test_bounds_may_be_plain_sequences():
+    common = dict(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=np.array([[5.0, 0.0]]),
+                  ellipses=[Ellipse.circle(center=[2.0, 3.0], radius=1.0)], max_curvature=1.0)
+    as_lists = plan_path(**common, bounds_min=[-20, -20], bounds_max=(20.0, 20.0))
+    assert as_lists.status == "ok" and np.array_equal(as_lists.points, plan_path(**common, **BOX).points)
