@@ -57,9 +57,10 @@ def _straight(
 
     Sampled as `resample_legs` samples the legs: each leg gets its share of the points evenly spaced
     in arc length, p + d s (d the unit direction, s = k L / count), and ends at its goal exactly.
-    Formed here from the directions and lengths already at hand, without its interpolation. The few
-    waypoints are plain floats until the sampling: the same arithmetic as numpy's on them, without
-    the cost of a numpy call per step (`plan_path` on wide-gap, its stack cached: 127 → 75 µs).
+    Formed here from the directions and lengths already at hand, without its interpolation, and
+    written into one array. The few waypoints are plain floats until the sampling: the same
+    arithmetic as numpy's on them, without the cost of a numpy call per step (`plan_path` on
+    wide-gap, its stack cached: 127 → 75 µs; one array instead of stacked pieces: 85 → 74 µs).
     """
     waypoints = [start.tolist(), *goals.tolist()]
     (x_min, y_min), (x_max, y_max) = np.asarray(bounds_min, dtype=float).tolist(), np.asarray(bounds_max, dtype=float).tolist()
@@ -80,14 +81,17 @@ def _straight(
     # A leg or two against every ellipse: the exact test on all pairs is cheaper than a broad phase.
     if not stack.polyline_level(waypoints) >= settings.level:
         return None
-    reference = np.vstack([start, goals])
     lengths = [length for _, _, length in legs]
-    n = math.ceil(sum(lengths) / settings.spacing_m) + 1
-    counts = leg_counts(lengths, n=max(n, len(goals) + 2))
-    pieces = [reference[:1]]
-    for p, goal, (ux, uy, length), count in zip(reference[:-1], reference[1:], legs, counts):
-        pieces += [p + np.array([ux, uy]) * (np.arange(1, count) * (length / count))[:, None], goal[None]]
-    return PathPlan("ok", np.vstack(pieces), tuple(accumulate(counts)))
+    n = max(math.ceil(sum(lengths) / settings.spacing_m) + 1, len(goals) + 2)
+    counts = leg_counts(lengths, n=n)
+    goal_indices = tuple(accumulate(counts))
+    points = np.empty((n, 2))
+    points[0] = waypoints[0]
+    for p, goal, (ux, uy, length), count, end in zip(waypoints, waypoints[1:], legs, counts, goal_indices):
+        s = np.arange(1, count) * (length / count)  # the leg's inner points' distances from p
+        points[end - count + 1 : end] = np.multiply.outer(s, (ux, uy)) + p
+        points[end] = goal
+    return PathPlan("ok", points, goal_indices)
 
 
 def _route(
