@@ -155,7 +155,7 @@ def _judge(
     for k, (gx, gy) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
         dx, dy = x[cursor:] - gx, y[cursor:] - gy
         distances = np.sqrt(dx * dx + dy * dy)
-        first = int(np.argmax(distances <= goal_tolerance_m))  # the first sample within tolerance, or 0
+        first = int((distances <= goal_tolerance_m).argmax())  # the first sample within tolerance, or 0
         if not distances[first] <= goal_tolerance_m:  # (NaN included)
             return fail(f"curve misses goal {k} by {distances.min():.3f} m")
         cursor += first
@@ -172,7 +172,7 @@ def sample(curve: BSpline, *, spacing_m: float) -> FloatArray:
 
 
 def _sample_count(length_m: float, *, spacing_m: float) -> int:
-    return max(2, int(np.ceil(length_m / (0.95 * spacing_m))) + 1)
+    return max(2, math.ceil(length_m / (0.95 * spacing_m)) + 1)
 
 
 def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
@@ -269,7 +269,8 @@ def _smooth_straight(
     count = _sample_count(math.dist(start.tolist(), end.tolist()), spacing_m=output_spacing_m)
     t = np.arange(count) * (1.0 / (count - 1))  # np.linspace(0, 1, count), without its overhead
     t[-1] = 1.0
-    points = start + t[:, None] * (end - start)
+    points = t[:, None] * (end - start)
+    points += start
     min_level = np.inf
     if ellipses:
         # One segment against every ellipse (no broad phase needed), less the offset from the chord scaled
