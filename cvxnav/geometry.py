@@ -316,9 +316,9 @@ class EllipseStack:
 
 @lru_cache(maxsize=8)
 def _stack_of(ellipses: tuple[Ellipse, ...]) -> EllipseStack:
-    # One concatenation of the ellipses' rows, split into contiguous A and b (einsum is twice as slow on
-    # strided ones): 31 µs for 128, 58 to concatenate their A and b apart. Read-only: the stack is shared.
-    rows = np.concatenate([e._row for e in ellipses]).reshape(-1, 6) if ellipses else np.zeros((0, 6))
+    # The ellipses' rows joined as bytes (each is a contiguous float64 array; np.concatenate of 128 small
+    # arrays costs 16 µs, the join 5), split into contiguous A and b. Read-only: the stack is shared.
+    rows = np.frombuffer(b"".join([e._row for e in ellipses])).reshape(-1, 6) if ellipses else np.zeros((0, 6))
     return EllipseStack(A=_frozen(rows[:, :4].copy().reshape(-1, 2, 2)), b=_frozen(rows[:, 4:].copy()))
 
 
