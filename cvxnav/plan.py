@@ -82,9 +82,9 @@ def plan_on_model(
         smooth_fn=lambda points: smooth(
             points,
             ellipses=grown,
-            max_curvature=scenario.max_curvature,
-            heading_rad=scenario.start.theta,
-            goals=scenario.goals_array,
+            max_curvature=problem["max_curvature"],
+            heading_rad=problem["heading_rad"],
+            goals=problem["goals"],
             goal_tolerance_m=scenario.goal_tolerance,
             bounds_min=problem["bounds_min"],
             bounds_max=problem["bounds_max"],
