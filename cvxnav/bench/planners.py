@@ -55,8 +55,8 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     """cvxnav's planning on the model every planner is handed: optimise + smooth (`cvxnav.plan.plan_on_model`,
     the planning half of `cvxnav plan`), the smoothed curve verified or no path.
 
-    Timed as the peers are, on `problem.grown` (the fit excluded); unlike them, the time includes building
-    the planner's arrays of the ellipses (`EllipseStack`): the stacks kept from the last call are dropped first.
+    Timed as the peers are, on `problem.grown` (the fit excluded), building the planner's arrays of the
+    ellipses (`EllipseStack`) included: the stacks kept from the last call are dropped first.
     """
     from cvxnav.plan import plan_on_model
 
@@ -183,16 +183,20 @@ def plan_ompl(
     States are checked by ‖A z + b‖ ≥ 1 and motions exactly by the segment test (a Python
     `MotionValidator`, not OMPL's sampled one), both numpy calls from C++: OMPL's times include that
     callback overhead. The time is the time to the target (the budget when it was not reached);
-    `first_solution_s` is the time to the first path. Both sum over legs, which run one after another.
+    `first_solution_s` is the time to the first path. Both sum over legs, which run one after another,
+    and both include building the checkers' arrays of the ellipses, as cvxnav's time includes its own.
     """
     from ompl import base as ob
     from ompl import geometric as og
     from ompl import util as ou
 
     ou.setLogLevel(ou.LOG_NONE)
+    EllipseStack.forget()  # the checkers' arrays are built from the model inside the time, as cvxnav's are
+    t0 = time.perf_counter()
     stack = problem.stack
     A, b = stack.A, stack.b
     Ax, Ay = A[:, :, 0].copy(), A[:, :, 1].copy()
+    arrays_s = time.perf_counter() - t0
 
     def outside(x: float, y: float) -> bool:
         u = Ax * x + Ay * y + b
@@ -214,7 +218,7 @@ def plan_ompl(
             return bool(np.all(np.einsum("mi,mi->m", w, w) >= 1.0))
 
     legs = problem.legs()
-    total_s = first_s = target_s = 0.0
+    total_s = first_s = target_s = arrays_s
     reached = True
     path: list[FloatArray] = []
     for (p, q), leg_optimum in zip(legs, leg_optima_m):
