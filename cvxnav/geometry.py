@@ -228,18 +228,33 @@ class EllipseStack:
         """min over a short polyline's segments and every ellipse of the `segment_levels` level (+inf
         without ellipses): the exact test on all pairs, a segment at a time with its ends as plain
         floats. For a leg or two (a straight reference, a chord) that is cheaper than a broad phase or
-        the batched kernel, and the same arithmetic, to the bit."""
+        the batched kernel, and the same arithmetic, to the bit.
+
+        The answer is a function of the stack's frozen arrays and the points alone, so the last few are
+        kept: the planner's straight line and the smoother's chord over it ask the same question.
+        """
         if len(self) == 0:
             return math.inf
-        level = math.inf
         xy = np.asarray(points, dtype=float).tolist()
+        key = tuple(map(tuple, xy))
+        level = self._polyline_levels.get(key)
+        if level is not None:
+            return level
+        level = math.inf
         for (px, py), (qx, qy) in zip(xy, xy[1:]):
             u0 = _affine(self._columns, px, py)
             v = _affine(self._columns, qx - px, qy - py, shift=False)
             here = float(_segment_minimum(u0, v).min())
             if not here >= level:  # (a NaN is kept: it fails every test)
                 level = here
+        if len(self._polyline_levels) >= 8:
+            self._polyline_levels.clear()
+        self._polyline_levels[key] = level
         return level
+
+    @cached_property
+    def _polyline_levels(self) -> dict[tuple[tuple[float, float], ...], float]:
+        return {}
 
     def _pair_segment_levels(self, p: FloatArray, q: FloatArray, rows: FloatArray, cols: FloatArray) -> FloatArray:
         columns = [c[:, cols] for c in self._columns]

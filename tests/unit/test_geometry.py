@@ -71,8 +71,8 @@ def test_a_polyline_s_level_is_the_least_segment_level_to_the_bit():
         Ellipse.from_axes(center=c, semi_axes=a, angle_rad=t)
         for c, a, t in zip(rng.uniform(-5, 5, (40, 2)), rng.uniform(0.2, 2.0, (40, 2)), rng.uniform(0, np.pi, 40))
     ])
-    for _ in range(50):
-        points = rng.uniform(-8, 8, (int(rng.integers(2, 5)), 2))
+    polylines = [rng.uniform(-8, 8, (int(rng.integers(2, 5)), 2)) for _ in range(50)]
+    for points in polylines + polylines[::-1]:  # asked again, some answers are the kept ones
         assert stack.polyline_level(points) == stack.segment_levels(points[:-1], points[1:]).min()
     assert stack.polyline_level([[1.0, 1.0], [1.0, 1.0]]) == stack.levels([[1.0, 1.0]]).min()  # a point
     assert np.isnan(stack.polyline_level([[0.0, 0.0], [np.nan, 1.0], [3.0, 3.0]]))  # kept, to fail every test
