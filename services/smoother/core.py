@@ -150,11 +150,11 @@ def _judge(
             return fail(f"curve leaves the start {misalignment:.4f} rad off the heading")
     if not (float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9):  # (NaN fails)
         return fail("curve leaves the map bounds")
-    x, y = z.T
+    # The samples as complex numbers x + iy (a view): each goal's distances are one subtraction and one |·|.
+    w = np.ascontiguousarray(z).view(np.complex128)[:, 0]
     cursor = 0
     for k, (gx, gy) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
-        dx, dy = x[cursor:] - gx, y[cursor:] - gy
-        distances = np.sqrt(dx * dx + dy * dy)
+        distances = np.abs(w[cursor:] - complex(gx, gy))
         first = int((distances <= goal_tolerance_m).argmax())  # the first sample within tolerance, or 0
         if not distances[first] <= goal_tolerance_m:  # (NaN included)
             return fail(f"curve misses goal {k} by {distances.min():.3f} m")
@@ -191,10 +191,12 @@ def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
     if length <= 0.0:
         return None
     ux, uy = (x1 - x0) / length, (y1 - y0) / length
-    # Each point's progress along the chord and its offset from it, in one product.
-    along, normal = np.array([[ux, uy], [-uy, ux]]) @ (control - control[0]).T
+    # Each point's progress along the chord and its offset from it, in one product: z − z₀ as a
+    # complex number x + iy (a view), turned by the chord's angle backwards.
+    turned = np.ascontiguousarray(control - control[0]).view(np.complex128)[:, 0] * complex(ux, -uy)
+    along = turned.real
     steps = along[1:] - along[:-1]
-    offset = float(np.abs(normal).max())
+    offset = float(np.abs(turned.imag).max())
     shortest = float(steps.min())
     if not (offset <= 1e-9 * max(length, 1.0) and shortest > 0.0):  # (NaN is not straight)
         return None
