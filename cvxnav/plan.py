@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,7 +66,7 @@ def plan_on_model(
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
     on the model every planner is handed."""
     problem = dict(
-        start=np.array(scenario.start.xy),
+        start=scenario.start.xy,
         heading_rad=scenario.start.theta,
         goals=scenario.goals_array,
         ellipses=grown,
@@ -78,7 +78,7 @@ def plan_on_model(
         **problem,
         settings=settings.refine,
         repairs=settings.repairs,
-        timer=(clock or _Clock()).stage,
+        timer=nullcontext if clock is None else clock.stage,
         smooth_fn=lambda points: smooth(
             points,
             ellipses=grown,

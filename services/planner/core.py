@@ -223,7 +223,7 @@ def plan_until_verified(
     smooth_fn: Callable[[FloatArray], Smoothed],
     settings: RefineSettings,
     repairs: tuple[tuple[float, float], ...],
-    timer: Callable[[str], AbstractContextManager] = lambda stage: nullcontext(),
+    timer: Callable[[str], AbstractContextManager] = nullcontext,
     **problem,
 ) -> tuple[PathPlan, Smoothed | None]:
     """`plan_path`, re-optimised with the `repairs`' margins (level, curvature factor) in turn until the
