@@ -332,9 +332,10 @@ class EllipseStack:
 @lru_cache(maxsize=8)
 def _stack_of(ellipses: tuple[Ellipse, ...]) -> EllipseStack:
     # The ellipses' rows of bytes joined (np.concatenate of 128 small arrays costs 16 µs, a join of them
-    # as buffers 5 to 14, of bytes 3 to 8), split into contiguous A and b. Read-only: the stack is shared.
-    rows = np.frombuffer(b"".join([e._row for e in ellipses])).reshape(-1, 6) if ellipses else np.zeros((0, 6))
-    return EllipseStack(A=_frozen(rows[:, :4].copy().reshape(-1, 2, 2)), b=_frozen(rows[:, 4:].copy()))
+    # as buffers 5 to 14, of bytes 3 to 8); A and b are views of the rows, read-only as bytes are: the
+    # stack is shared.
+    rows = np.frombuffer(b"".join([e._row for e in ellipses])).reshape(-1, 6) if ellipses else _frozen(np.zeros((0, 6)))
+    return EllipseStack(A=rows[:, :4].reshape(-1, 2, 2), b=rows[:, 4:])
 
 
 def _affine(columns: list[FloatArray], x: FloatArray, y: FloatArray, *, shift: bool = True) -> FloatArray:
