@@ -255,11 +255,12 @@ def plan_ompl(
             return now >= budget_s
 
         algorithm.solve(ob.PlannerTerminationCondition(stop))
+        solved = pdef.hasExactSolution()
+        # Timed until the path is read out into an array, as cvxnav's time includes producing its points.
+        leg = np.array([[s[0], s[1]] for s in pdef.getSolutionPath().getStates()]) if solved else None
         elapsed = time.perf_counter() - t0
-        if not pdef.hasExactSolution():
+        if leg is None:
             return Attempt(path=None, time_s=total_s + elapsed, reason=f"{planner}: no path in {budget_s:g} s")
-        solution = pdef.getSolutionPath()
-        leg = np.array([[s[0], s[1]] for s in solution.getStates()])
         path.append(leg if not path else leg[1:])
         first_s += first[0] if first else elapsed
         hit = elapsed if polyline_length(leg) <= target_factor * leg_optimum else None
