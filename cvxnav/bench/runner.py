@@ -51,7 +51,9 @@ OPTIMUM = "optimum (tangent graph)"
 @dataclass(frozen=True)
 class BenchOptions:
     quick: bool = False
-    repeats: int = 5
+    repeats: int = 5  # at least; a fast planner is repeated until min_timed_s is timed (at most max_repeats)
+    min_timed_s: float = 0.2  # a median of 5 sub-millisecond times moves with every hiccup of the machine
+    max_repeats: int = 200
     sampling_budget_s: float = 5.0  # per leg, for BIT* and Informed RRT*
     drake_regions: int = 16
     drake_repeats: int = 2  # IRIS + GCS is slow and deterministic given its seed
@@ -64,7 +66,7 @@ class BenchOptions:
     @classmethod
     def quick_defaults(cls, *, repeats: int | None = None) -> BenchOptions:
         """Under two minutes on two cores: one repeat fewer everywhere, short budgets, a small scaling run."""
-        return cls(quick=True, repeats=repeats or 2, sampling_budget_s=1.0, drake_regions=8,
+        return cls(quick=True, repeats=repeats or 2, min_timed_s=0.05, sampling_budget_s=1.0, drake_regions=8,
                    drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, scaling_counts=(10, 25), scaling_repeats=1)
 
 
@@ -75,6 +77,16 @@ class PlannerSpec:
     repeats: int
     time_meaning: str
     cold: bool = False
+    timed_s: float = 0.0  # repeat beyond `repeats` until this much time is measured (0: exactly `repeats`)
+
+
+def _attempts(spec: PlannerSpec, problem: BenchProblem, *, max_repeats: int) -> list[Attempt]:
+    """`spec.repeats` timed calls, then more while their times sum to less than `spec.timed_s` (at most
+    `max_repeats` in all): like timeit's autorange, so a sub-millisecond median rests on many calls."""
+    attempts = [spec.call(problem, k) for k in range(spec.repeats)]
+    while len(attempts) < max_repeats and sum(a.time_s for a in attempts) < spec.timed_s:
+        attempts.append(spec.call(problem, len(attempts)))
+    return attempts
 
 
 def default_scenario_dir() -> Path:
@@ -157,8 +169,9 @@ def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]
     specs = [
         PlannerSpec(CVXNAV, lambda p, s: planners.plan_cvxnav(p), options.repeats,
               "optimise + smooth on the grown ellipses (fit excluded, as for every planner; its EllipseStack rebuilt each call); heading + curvature honoured",
-              cold=True),
-        PlannerSpec(PAPER, lambda p, s: planners.plan_paper(p), options.repeats, "straight line, detours, Bézier; nothing verified"),
+              cold=True, timed_s=options.min_timed_s),
+        PlannerSpec(PAPER, lambda p, s: planners.plan_paper(p), options.repeats, "straight line, detours, Bézier; nothing verified",
+                    timed_s=options.min_timed_s),
     ]
     if not peers["ompl"]:
         budget = options.sampling_budget_s
@@ -168,6 +181,7 @@ def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]
                 lambda p, s, algorithm=algorithm: planners.plan_ompl(p, planner=algorithm, budget_s=budget, leg_optima_m=leg_optima),
                 options.repeats,
                 f"time to within 1 % of the optimum (stops there), else the {budget:g} s budget per leg; point robot",
+                timed_s=options.min_timed_s,
             ))
     if not peers["drake"]:
         for name, shape in ((DRAKE, "ellipses"), (DRAKE_POLYGONS, "polygons")):
@@ -205,6 +219,10 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         "Clarabel, the solver Drake has here (MOSEK unlicensed), often fails IRIS's ellipse SOCP.",
         "Peak memory: tracemalloc over one extra untimed call (Python and numpy allocations; not C++ inside OMPL/Drake/Clarabel).",
     ]
+    if options.min_timed_s > 0:
+        notes.append(f"Repeats: at least {options.repeats} timed calls per planner (Drake {options.drake_repeats}); a faster "
+                     f"planner is called again until {options.min_timed_s:g} s of its time is measured, at most "
+                     f"{options.max_repeats} calls. Each row's repeats are its count.")
     references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
     n_steps = len(scenarios) * (2 + (0 if peers["ompl"] else 2) + (0 if peers["drake"] else 2)) + 2
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
@@ -228,8 +246,8 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
                     progress.advance(task)
                     continue
                 cold_s = spec.call(problem, 0).time_s if spec.cold else None
-                attempts = [spec.call(problem, k) for k in range(spec.repeats)]
-                peak = _peak_kib(lambda: spec.call(problem, spec.repeats))
+                attempts = _attempts(spec, problem, max_repeats=options.max_repeats)
+                peak = _peak_kib(lambda: spec.call(problem, len(attempts)))
                 rows.append(summarise(spec, problem, attempts, optimum_m=optimum_m, cold_s=cold_s, peak_kib=peak))
                 progress.advance(task)
             rows.append(PlannerResult(

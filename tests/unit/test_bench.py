@@ -160,6 +160,24 @@ def test_missing_peers_are_skipped_with_a_note_that_says_how_to_install(disc, mo
     assert report.targets.time_ratio_vs_bitstar == {} and report.scaling is None
 
 
+def test_a_fast_planner_is_repeated_until_enough_time_is_measured(disc):
+    from cvxnav.bench import runner
+
+    problem, _ = disc
+
+    def call(p: BenchProblem, k: int) -> planners.Attempt:
+        return planners.plan_paper(p)  # the paper's method: a few ms on one disc
+
+    exact = runner._attempts(runner.PlannerSpec("paper", call, 3, ""), problem, max_repeats=200)
+    assert len(exact) == 3
+    timed = runner._attempts(runner.PlannerSpec("paper", call, 3, "", timed_s=0.05), problem, max_repeats=200)
+    assert len(timed) > 3
+    assert sum(a.time_s for a in timed) >= 0.05 or len(timed) == 200
+    assert sum(a.time_s for a in timed[:-1]) < 0.05  # and no more calls than that took
+    capped = runner._attempts(runner.PlannerSpec("paper", call, 3, "", timed_s=60.0), problem, max_repeats=7)
+    assert len(capped) == 7
+
+
 @pytest.mark.parametrize("count", [10, 25, 200])
 def test_every_scaling_field_blocks_the_straight_line(count):
     """Each point of the scaling run measures planning (a route and its refinement), never the
