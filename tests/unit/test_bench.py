@@ -160,22 +160,28 @@ def test_missing_peers_are_skipped_with_a_note_that_says_how_to_install(disc, mo
     assert report.targets.time_ratio_vs_bitstar == {} and report.scaling is None
 
 
-def test_a_fast_planner_is_repeated_until_enough_time_is_measured(disc):
+def test_planners_are_timed_in_turns_the_fast_ones_until_enough_time_is_measured(disc):
     from cvxnav.bench import runner
 
     problem, _ = disc
+    order: list[str] = []
 
-    def call(p: BenchProblem, k: int) -> planners.Attempt:
-        return planners.plan_paper(p)  # the paper's method: a few ms on one disc
+    def paper(name: str):
+        def call(p: BenchProblem, k: int) -> planners.Attempt:
+            order.append(name)
+            return planners.plan_paper(p)  # the paper's method: a few ms on one disc
+        return call
 
-    exact = runner._attempts(runner.PlannerSpec("paper", call, 3, ""), problem, max_repeats=200)
-    assert len(exact) == 3
-    timed = runner._attempts(runner.PlannerSpec("paper", call, 3, "", timed_s=0.05), problem, max_repeats=200)
-    assert len(timed) > 3
-    assert sum(a.time_s for a in timed) >= 0.05 or len(timed) == 200
-    assert sum(a.time_s for a in timed[:-1]) < 0.05  # and no more calls than that took
-    capped = runner._attempts(runner.PlannerSpec("paper", call, 3, "", timed_s=60.0), problem, max_repeats=7)
-    assert len(capped) == 7
+    specs = [runner.PlannerSpec("exact", paper("exact"), 3, ""),
+             runner.PlannerSpec("timed", paper("timed"), 3, "", timed_s=0.05),
+             runner.PlannerSpec("capped", paper("capped"), 3, "", timed_s=60.0)]
+    attempts = runner._in_turns(specs, problem, max_repeats=7)
+    assert len(attempts["exact"]) == 3 and len(attempts["capped"]) == 7
+    timed = attempts["timed"]
+    assert 3 < len(timed) <= 7
+    assert sum(a.time_s for a in timed) >= 0.05 or len(timed) == 7
+    assert sum(a.time_s for a in timed[:-1]) < 0.05  # no more calls than that took
+    assert order[:6] == ["exact", "timed", "capped"] * 2  # one call each per round
 
 
 @pytest.mark.parametrize("count", [10, 25, 200])
