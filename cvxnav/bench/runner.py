@@ -12,6 +12,7 @@ and written as JSON and Markdown.
 from __future__ import annotations
 
 import platform
+import random
 import statistics
 import sys
 import time
@@ -53,7 +54,9 @@ OPTIMUM = "optimum (tangent graph)"
 class BenchOptions:
     quick: bool = False
     repeats: int = 5  # at least; a fast planner is repeated until min_timed_s is timed (at most max_repeats)
-    min_timed_s: float = 0.2  # a median of 5 sub-millisecond times moves with every hiccup of the machine
+    # A median of 5 moves with every hiccup of the machine (sub-millisecond times) and with a sampling
+    # planner's draws (BIT* on corner-trap: 17 to 72 ms between the deciles of 40 runs).
+    min_timed_s: float = 1.0
     max_repeats: int = 200
     sampling_budget_s: float = 5.0  # per leg, for BIT* and Informed RRT*
     drake_regions: int = 16
@@ -87,17 +90,21 @@ def _wants_more(spec: PlannerSpec, done: list[Attempt], *, max_repeats: int) -> 
     return len(done) < spec.repeats or (len(done) < max_repeats and sum(a.time_s for a in done) < spec.timed_s)
 
 
-def _in_turns(specs: list[PlannerSpec], problem: BenchProblem, *, max_repeats: int,
+def _in_turns(specs: list[PlannerSpec], problem: BenchProblem, *, max_repeats: int, seed: int,
               on_round: Callable[[int], None] = lambda k: None) -> dict[str, list[Attempt]]:
     """Each planner's timed calls, taken in turns: every round calls each planner that still wants a
-    call (`_wants_more`) once. This VM has slow and fast spells of seconds; planners timed one after
-    another in blocks caught different spells (wide-gap's ratio to BIT* read 0.57 and 1.37 in two runs
-    of the same code, 200 calls each), in turns they share them."""
+    call (`_wants_more`) once, in an order shuffled per round. This VM has slow and fast spells of
+    seconds; planners timed one after another in blocks caught different spells (wide-gap's ratio to
+    BIT* read 0.57 and 1.37 in two runs of the same code, 200 calls each), in turns they share them.
+    The shuffle: in a fixed order each planner always follows the same one, whose leftovers in the
+    caches favour some (a sub-millisecond call after Informed RRT*'s 8 ms is slower than after 1 ms)."""
+    rng = random.Random(seed)
     attempts: dict[str, list[Attempt]] = {spec.name: [] for spec in specs}
     rounds = 0
     while due := [spec for spec in specs if _wants_more(spec, attempts[spec.name], max_repeats=max_repeats)]:
         on_round(rounds)
         rounds += 1
+        rng.shuffle(due)
         for spec in due:
             attempts[spec.name].append(spec.call(problem, len(attempts[spec.name])))
     return attempts
@@ -255,7 +262,7 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
             aimless = {BITSTAR, INFORMED} if optimum_m is None else set()
             timed = [spec for spec in specs if spec.name not in aimless]
             cold_s = {spec.name: spec.call(problem, 0).time_s for spec in timed if spec.cold}
-            attempts = _in_turns(timed, problem, max_repeats=options.max_repeats, on_round=lambda k, name=scenario.name:
+            attempts = _in_turns(timed, problem, max_repeats=options.max_repeats, seed=options.seed, on_round=lambda k, name=scenario.name:
                                  progress.update(task, description=f"{name}: timing the planners in turns, round {k + 1}"))
             rows: list[PlannerResult] = []
             for spec in specs:

@@ -175,13 +175,13 @@ def test_planners_are_timed_in_turns_the_fast_ones_until_enough_time_is_measured
     specs = [runner.PlannerSpec("exact", paper("exact"), 3, ""),
              runner.PlannerSpec("timed", paper("timed"), 3, "", timed_s=0.05),
              runner.PlannerSpec("capped", paper("capped"), 3, "", timed_s=60.0)]
-    attempts = runner._in_turns(specs, problem, max_repeats=7)
+    attempts = runner._in_turns(specs, problem, max_repeats=7, seed=0)
     assert len(attempts["exact"]) == 3 and len(attempts["capped"]) == 7
     timed = attempts["timed"]
     assert 3 < len(timed) <= 7
     assert sum(a.time_s for a in timed) >= 0.05 or len(timed) == 7
     assert sum(a.time_s for a in timed[:-1]) < 0.05  # no more calls than that took
-    assert order[:6] == ["exact", "timed", "capped"] * 2  # one call each per round
+    assert sorted(order[:3]) == sorted(order[3:6]) == ["capped", "exact", "timed"]  # one call each per round
 
 
 @pytest.mark.parametrize("count", [10, 25, 200])
