@@ -3,8 +3,8 @@
 Fitting: the minimum-volume (Löwner–John) ellipse of n random points by the project's two routes
 (`services.ellipsoids.mvee`, cvxpy + Clarabel; `mvee_fast`, Todd–Yildirim + Newton in numpy) and by
 Drake's `Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid`. Each gets the raw points; each is
-warmed up once (cvxpy's compile is cached per padded size) and then timed; areas are compared with
-the cvxpy route's.
+warmed up once (cvxpy's compile is cached per padded size) and then timed, the methods in turns;
+areas are compared with the cvxpy route's.
 
 Scaling: cvxnav's planning time on seeded random fields of 10 … 200 obstacles in one fixed box (the
 shape of `field-60`), obstacles drawn like the public `field-*` scenarios (polygons, circles, point
@@ -14,6 +14,7 @@ of log(time) on log(obstacles).
 
 from __future__ import annotations
 
+import random
 import statistics
 import time
 from collections.abc import Callable
@@ -32,15 +33,19 @@ def _fit_points(count: int, *, seed: int) -> np.ndarray:
     return z @ np.array([[c, s], [-s, c]]) + np.array([3.0, -1.0])
 
 
-def _median_ms(fn: Callable[[], float], *, repeats: int) -> tuple[float, float]:
-    """(median time in ms over `repeats` calls after one warm-up, the area the call returned)."""
-    area = fn()
-    times = []
+def _timed_in_turns(methods: list[tuple[str, Callable[[], float]]], *, repeats: int, seed: int) -> dict[str, list[float]]:
+    """Times in ms of `repeats` calls of each method, the methods in turns, shuffled each round (as the
+    planners are timed: the machine's slow and fast spells fall on all of them alike)."""
+    rng = random.Random(seed)
+    order = list(methods)
+    times: dict[str, list[float]] = {method: [] for method, _ in methods}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(1e3 * (time.perf_counter() - t0))
-    return statistics.median(times), area
+        rng.shuffle(order)
+        for method, fn in order:
+            t0 = time.perf_counter()
+            fn()
+            times[method].append(1e3 * (time.perf_counter() - t0))
+    return times
 
 
 def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, seed: int = 0) -> list[FitResult]:
@@ -63,17 +68,23 @@ def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, se
                 return float(np.pi / abs(np.linalg.det(ellipse.A())))
 
             methods.append(("Drake MinimumVolumeCircumscribedEllipsoid", drake_area))
-        reference: float | None = None
+        areas: dict[str, float] = {}  # one warm-up call each: its area, or its failure
+        failures: dict[str, str] = {}
         for method, fn in methods:
             try:
-                median_ms, area = _median_ms(fn, repeats=repeats)
+                areas[method] = fn()
             except Exception as error:  # a solver failure is a result, not a crash of the benchmark
+                failures[method] = f"{type(error).__name__}: {error}"[:200]
+        times = _timed_in_turns([m for m in methods if m[0] in areas], repeats=repeats, seed=seed + count)
+        reference: float | None = None
+        for method, _ in methods:
+            if method in failures:
                 results.append(FitResult(method=method, points=count, time_median_ms=None, area_rel_diff=None,
-                                         error=f"{type(error).__name__}: {error}"[:200]))
+                                         error=failures[method]))
                 continue
-            reference = area if reference is None else reference
-            results.append(FitResult(method=method, points=count, time_median_ms=median_ms,
-                                     area_rel_diff=abs(area - reference) / reference))
+            reference = areas[method] if reference is None else reference
+            results.append(FitResult(method=method, points=count, time_median_ms=statistics.median(times[method]),
+                                     area_rel_diff=abs(areas[method] - reference) / reference))
     return results
 
 
