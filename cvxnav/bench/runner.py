@@ -235,7 +235,7 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         "free boundary arcs; services/planner/route.py at level 1): its length is the model's exact optimum.",
         "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack-style segment test) in a "
         "Python MotionValidator, so OMPL's times include Python callback overhead. Its times, like cvxnav's, include "
-        "building its arrays of the ellipses from the model.",
+        "building its arrays of the ellipses from the model and end with its path read out into an array.",
         "Drake: IRIS on the grown ellipses themselves, and on 32-gons circumscribing them (≤ 0.5 % larger) because "
         "Clarabel, the solver Drake has here (MOSEK unlicensed), often fails IRIS's ellipse SOCP.",
         "Peak memory: tracemalloc over one extra untimed call (Python and numpy allocations; not C++ inside OMPL/Drake/Clarabel).",
