@@ -240,10 +240,12 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         "Clarabel, the solver Drake has here (MOSEK unlicensed), often fails IRIS's ellipse SOCP.",
         "Peak memory: tracemalloc over one extra untimed call (Python and numpy allocations; not C++ inside OMPL/Drake/Clarabel).",
     ]
-    if options.min_timed_s > 0:
-        notes.append(f"Repeats: at least {options.repeats} timed calls per planner (Drake {options.drake_repeats}); a faster "
-                     f"planner is called again until {options.min_timed_s:g} s of its time is measured, at most "
-                     f"{options.max_repeats} calls. Each row's repeats are its count.")
+    more = (f"; a faster planner is called again until {options.min_timed_s:g} s of its time is measured, at most "
+            f"{options.max_repeats} calls" if options.min_timed_s > 0 else "")
+    notes.append(f"Timing: the planners are called in turns, one call each per round in an order shuffled per round "
+                 f"(seeded), so that the machine's slow and fast spells fall on all of them alike. At least "
+                 f"{options.repeats} timed calls per planner (Drake {options.drake_repeats}){more}. Each row's repeats "
+                 f"are its count.")
     references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
     n_steps = len(scenarios) * (2 + (0 if peers["ompl"] else 2) + (0 if peers["drake"] else 2)) + 2
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
