@@ -151,7 +151,7 @@ def _judge(
     if not (float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9):  # (NaN fails)
         return fail("curve leaves the map bounds")
     # The samples as complex numbers x + iy (a view): each goal's distances are one subtraction and one |·|.
-    w = np.ascontiguousarray(z).view(np.complex128)[:, 0]
+    w = np.ascontiguousarray(z, dtype=float).view(np.complex128)[:, 0]
     cursor = 0
     for k, (gx, gy) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
         distances = np.abs(w[cursor:] - complex(gx, gy))
