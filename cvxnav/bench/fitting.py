@@ -3,8 +3,8 @@
 Fitting: the minimum-volume (Löwner–John) ellipse of n random points by the project's two routes
 (`services.ellipsoids.mvee`, cvxpy + Clarabel; `mvee_fast`, Todd–Yildirim + Newton in numpy) and by
 Drake's `Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid`. Each gets the raw points; each is
-warmed up once (cvxpy's compile is cached per padded size) and then timed, the methods in turns;
-areas are compared with the cvxpy route's.
+warmed up once (cvxpy's compile is cached per padded size) and then timed, the methods in turns
+(`cvxnav.bench.turns`); areas are compared with the cvxpy route's.
 
 Scaling: cvxnav's planning time on seeded random fields of 10 … 200 obstacles in one fixed box (the
 shape of `field-60`), obstacles drawn like the public `field-*` scenarios (polygons, circles, point
@@ -14,7 +14,6 @@ of log(time) on log(obstacles).
 
 from __future__ import annotations
 
-import random
 import statistics
 import time
 from collections.abc import Callable
@@ -22,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from cvxnav.bench.report import FitResult, ScalingPoint, ScalingResult
+from cvxnav.bench.turns import in_turns
 from schemas.scenario import Scenario, parse_scenario
 
 
@@ -33,19 +33,11 @@ def _fit_points(count: int, *, seed: int) -> np.ndarray:
     return z @ np.array([[c, s], [-s, c]]) + np.array([3.0, -1.0])
 
 
-def _timed_in_turns(methods: list[tuple[str, Callable[[], float]]], *, repeats: int, seed: int) -> dict[str, list[float]]:
-    """Times in ms of `repeats` calls of each method, the methods in turns, shuffled each round (as the
-    planners are timed: the machine's slow and fast spells fall on all of them alike)."""
-    rng = random.Random(seed)
-    order = list(methods)
-    times: dict[str, list[float]] = {method: [] for method, _ in methods}
-    for _ in range(repeats):
-        rng.shuffle(order)
-        for method, fn in order:
-            t0 = time.perf_counter()
-            fn()
-            times[method].append(1e3 * (time.perf_counter() - t0))
-    return times
+def _ms(fn: Callable[[], float]) -> float:
+    """One call of `fn`, timed: milliseconds."""
+    t0 = time.perf_counter()
+    fn()
+    return 1e3 * (time.perf_counter() - t0)
 
 
 def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, seed: int = 0) -> list[FitResult]:
@@ -75,7 +67,8 @@ def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, se
                 areas[method] = fn()
             except Exception as error:  # a solver failure is a result, not a crash of the benchmark
                 failures[method] = f"{type(error).__name__}: {error}"[:200]
-        times = _timed_in_turns([m for m in methods if m[0] in areas], repeats=repeats, seed=seed + count)
+        times = in_turns({method: lambda k, fn=fn: _ms(fn) for method, fn in methods if method in areas},
+                         lambda method, done: len(done) < repeats, seed=seed + count)
         reference: float | None = None
         for method, _ in methods:
             if method in failures:

@@ -12,13 +12,13 @@ and written as JSON and Markdown.
 from __future__ import annotations
 
 import platform
-import random
 import statistics
 import sys
 import time
 import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from importlib import metadata
 from pathlib import Path
 
@@ -39,6 +39,7 @@ from cvxnav.bench.report import (
     ScenarioResult,
     TargetRatios,
 )
+from cvxnav.bench.turns import in_turns
 from schemas.scenario import Scenario
 
 CVXNAV = "cvxnav"
@@ -92,22 +93,15 @@ def _wants_more(spec: PlannerSpec, done: list[Attempt], *, max_repeats: int) -> 
 
 def _in_turns(specs: list[PlannerSpec], problem: BenchProblem, *, max_repeats: int, seed: int,
               on_round: Callable[[int], None] = lambda k: None) -> dict[str, list[Attempt]]:
-    """Each planner's timed calls, taken in turns: every round calls each planner that still wants a
-    call (`_wants_more`) once, in an order shuffled per round. This VM has slow and fast spells of
-    seconds; planners timed one after another in blocks caught different spells (wide-gap's ratio to
-    BIT* read 0.57 and 1.37 in two runs of the same code, 200 calls each), in turns they share them.
-    The shuffle: in a fixed order each planner always follows the same one, whose leftovers in the
-    caches favour some (a sub-millisecond call after Informed RRT*'s 8 ms is slower than after 1 ms)."""
-    rng = random.Random(seed)
-    attempts: dict[str, list[Attempt]] = {spec.name: [] for spec in specs}
-    rounds = 0
-    while due := [spec for spec in specs if _wants_more(spec, attempts[spec.name], max_repeats=max_repeats)]:
-        on_round(rounds)
-        rounds += 1
-        rng.shuffle(due)
-        for spec in due:
-            attempts[spec.name].append(spec.call(problem, len(attempts[spec.name])))
-    return attempts
+    """Each planner's timed calls, the planners in turns (`cvxnav.bench.turns`) while they want more
+    (`_wants_more`)."""
+    by_name = {spec.name: spec for spec in specs}
+    return in_turns(
+        {spec.name: partial(spec.call, problem) for spec in specs},
+        lambda name, done: _wants_more(by_name[name], done, max_repeats=max_repeats),
+        seed=seed,
+        on_round=on_round,
+    )
 
 
 def default_scenario_dir() -> Path:
