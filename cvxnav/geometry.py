@@ -383,6 +383,12 @@ def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) 
     return np.minimum(np.min(np.max(h / a[:, None, :], axis=2), axis=1), 1.0)
 
 
+def as_complex(points: ArrayLike) -> NDArray[np.complex128]:
+    """(n, 2) points as n complex numbers x + iy, exactly: a view of C-ordered float64 points, else of
+    a float64 copy. A turn is then one product and a distance one subtraction and one |·|."""
+    return np.ascontiguousarray(points, dtype=float).view(np.complex128)[:, 0]
+
+
 def polyline_length(points: ArrayLike) -> float:
     z = np.asarray(points, dtype=float)
     return float(np.sum(np.linalg.norm(np.diff(z, axis=0), axis=1)))

@@ -18,10 +18,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from cvxnav.geometry import Ellipse, FloatArray
+from cvxnav.geometry import Ellipse, FloatArray, as_complex
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
 
 __all__ = ["Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon", "point_cover"]
@@ -359,11 +359,6 @@ def _point_cover(
     return _cover(z, make=make, split=_split_points, tolerance_m=tolerance_m, max_pieces=max_pieces)
 
 
-def _keys(points: FloatArray) -> NDArray[np.complex128]:
-    """Points as complex numbers (exact), so that set membership is one `np.isin`."""
-    return points[:, 0] + 1j * points[:, 1]
-
-
 def _reused(earlier: Piece, points: FloatArray, *, tolerance_m: float) -> Piece | None:
     """A piece of `points` with `earlier`'s ellipse, if that is their MVEE (see `point_cover`); else None.
 
@@ -376,10 +371,10 @@ def _reused(earlier: Piece, points: FloatArray, *, tolerance_m: float) -> Piece 
                      worst=earlier.worst)
     if earlier.support is None or earlier.ellipse.semi_axes[1] < _DEGENERATE_M:
         return None
-    here = _keys(points)
-    if not np.all(np.isin(_keys(earlier.support), here)) or np.max(earlier.ellipse.level(points)) > 1.0:
+    here = as_complex(points)
+    if not np.all(np.isin(as_complex(earlier.support), here)) or np.max(earlier.ellipse.level(points)) > 1.0:
         return None
-    before = _keys(earlier.points)
+    before = as_complex(earlier.points)
     added = points[~np.isin(here, before)]
     if np.all(np.isin(before, here)) and (
             len(added) == 0 or np.min(np.linalg.norm(added - earlier.worst, axis=1)) >= earlier.excess_m):

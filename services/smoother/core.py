@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import BSpline
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
+from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, as_complex
 
 SAMPLES_PER_SPAN = 16
 
@@ -150,8 +150,7 @@ def _judge(
             return fail(f"curve leaves the start {misalignment:.4f} rad off the heading")
     if not (float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9):  # (NaN fails)
         return fail("curve leaves the map bounds")
-    # The samples as complex numbers x + iy (a view): each goal's distances are one subtraction and one |·|.
-    w = np.ascontiguousarray(z, dtype=float).view(np.complex128)[:, 0]
+    w = as_complex(z)  # each goal's distances: one subtraction and one |·|
     cursor = 0
     for k, (gx, gy) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
         distances = np.abs(w[cursor:] - complex(gx, gy))
@@ -191,9 +190,9 @@ def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
     if length <= 0.0:
         return None
     ux, uy = (x1 - x0) / length, (y1 - y0) / length
-    # Each point's progress along the chord and its offset from it, in one product: z − z₀ as a
-    # complex number x + iy (a view), turned by the chord's angle backwards.
-    turned = np.ascontiguousarray(control - control[0]).view(np.complex128)[:, 0] * complex(ux, -uy)
+    # Each point's progress along the chord and its offset from it, in one product: z − z₀ turned by
+    # the chord's angle backwards.
+    turned = as_complex(control - control[0]) * complex(ux, -uy)
     along = turned.real
     steps = along[1:] - along[:-1]
     offset = float(np.abs(turned.imag).max())
