@@ -110,13 +110,15 @@ def test_straight_control_points_are_judged_as_the_chord_they_are():
 
 
 def test_the_verdict_does_not_depend_on_the_control_points_layout():
-    # The straight test and the verdict read the points as complex numbers: a Fortran-ordered or
-    # float32 array must give the same answer as a C-ordered float64 one.
+    # The straight test and the verdict read the points as complex numbers: a Fortran-ordered, float32
+    # or strided array must give the same answer as a C-ordered float64 one.
     control = np.linspace([0.0, 0.0], [10.0, 10.0], 158)
     common = dict(ellipses=[Ellipse.circle(center=[5.0, 0.0], radius=1.0)], max_curvature=1.0, heading_rad=np.pi / 4,
                   goals=np.array([[10.0, 10.0]]), goal_tolerance_m=0.3, **BOUNDS)
     expected = smooth(control, **common).verification
-    for layout in (np.asfortranarray(control), control.astype(np.float32), control[::-1][::-1]):
+    strided = np.repeat(control, 2, axis=0)[::2]  # every other row of a larger array
+    assert not strided.flags.c_contiguous
+    for layout in (np.asfortranarray(control), control.astype(np.float32), strided):
         got = smooth(layout, **common).verification
         assert got.ok == expected.ok and got.min_level == pytest.approx(expected.min_level, rel=1e-6)
     missed = dict(common, goals=np.array([[10.0, 12.0]]))
