@@ -181,9 +181,9 @@ def plan_ompl(
     Each leg gets the budget and the objective's cost threshold target_factor × that leg's optimum, so
     the planner stops as soon as it is within 1 % (OMPL's `isSatisfied`), or when the budget runs out.
     States are checked by ‖A z + b‖ ≥ 1 and motions exactly by the segment test (a Python
-    `MotionValidator`, not OMPL's sampled one), both numpy calls from C++: OMPL's times include that
-    callback overhead. The time is the time to the target (the budget when it was not reached);
-    `first_solution_s` is the time to the first path. Both sum over legs, which run one after another,
+    `MotionValidator`, not OMPL's sampled one), both by `EllipseStack` as cvxnav checks its straight
+    line: numpy calls from C++, so OMPL's times include that callback overhead. The time is the time
+    to the target (the budget when it was not reached); `first_solution_s` is the time to the first path. Both sum over legs, which run one after another,
     and both include building the checkers' arrays of the ellipses, as cvxnav's time includes its own.
     """
     from ompl import base as ob
@@ -194,28 +194,16 @@ def plan_ompl(
     EllipseStack.forget()  # the checkers' arrays are built from the model inside the time, as cvxnav's are
     t0 = time.perf_counter()
     stack = problem.stack
-    A, b = stack.A, stack.b
-    Ax, Ay = A[:, :, 0].copy(), A[:, :, 1].copy()
     arrays_s = time.perf_counter() - t0
 
-    def outside(x: float, y: float) -> bool:
-        u = Ax * x + Ay * y + b
-        return bool(np.all(np.einsum("mi,mi->m", u, u) >= 1.0))
-
     def valid(state) -> bool:
-        return outside(state[0], state[1])
+        return bool(stack.levels((state[0], state[1])).min() >= 1.0)
 
     class ExactMotion(ob.MotionValidator):
         """p→q is valid when min over t of ‖A (p + t (q − p)) + b‖ ≥ 1 for every ellipse (eq. 2, exact)."""
 
         def checkMotion(self, s1, s2, *rest) -> bool:  # noqa: N802 (OMPL's name)
-            px, py = s1[0], s1[1]
-            u0 = Ax * px + Ay * py + b
-            v = Ax * (s2[0] - px) + Ay * (s2[1] - py)
-            vv = np.einsum("mi,mi->m", v, v)
-            t = np.clip(-np.einsum("mi,mi->m", u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0, 1.0)
-            w = u0 + t[:, None] * v
-            return bool(np.all(np.einsum("mi,mi->m", w, w) >= 1.0))
+            return stack.polyline_level(((s1[0], s1[1]), (s2[0], s2[1]))) >= 1.0
 
     legs = problem.legs()
     total_s = first_s = target_s = arrays_s

@@ -227,7 +227,7 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         f"width/2 + safety − {COLLISION_TOLERANCE_M} m; a colliding planner counts as failed.",
         "Optimum = the exact tangent graph of the grown ellipses (common tangents, tangents from start and goals, "
         "free boundary arcs; services/planner/route.py at level 1): its length is the model's exact optimum.",
-        "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack-style segment test) in a "
+        "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack's segment test, as cvxnav checks its straight line) in a "
         "Python MotionValidator, so OMPL's times include Python callback overhead. Its times, like cvxnav's, include "
         "building its arrays of the ellipses from the model and end with its path read out into an array.",
         "Drake: IRIS on the grown ellipses themselves, and on 32-gons circumscribing them (≤ 0.5 % larger) because "
