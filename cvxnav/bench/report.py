@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/2"  # /2: `ScalingPoint.local_exponent`
+FORMAT = "cvxnav.bench/3"  # /2: `ScalingPoint.local_exponent`; /3: `PlannerResult.times_ms`, the ratios' intervals
 
 
 class _Frozen(BaseModel):
@@ -31,6 +31,7 @@ class PlannerResult(_Frozen):
     min_clearance_m: float | None = None  # worst true-geometry clearance over the returned paths
     time_median_ms: float | None = None  # the planner's planning time (what it means: `time_meaning`)
     time_p90_ms: float | None = None
+    times_ms: list[float] = []  # every timed call's time, in call order (the median and p90 are of these)
     time_meaning: str = ""
     cold_ms: float | None = None  # cvxnav only: the first call on the scenario in this process
     first_solution_ms: float | None = None  # sampling planners: median time to the first solution
@@ -81,6 +82,8 @@ class TargetRatios(_Frozen):
     length_ratio_worst: float | None  # max over scenarios of cvxnav length ÷ grown-ellipse optimum
     time_ratio_vs_bitstar: dict[str, float | None]  # per scenario: cvxnav warm median ÷ BIT* median to 1 %
     time_ratio_vs_bitstar_is_lower_bound: dict[str, bool]  # BIT* missed 1 % in budget: ratio uses the budget
+    # per scenario: the ratio's 95 % bootstrap interval (both planners' calls resampled, seeded)
+    time_ratio_vs_bitstar_interval: dict[str, tuple[float, float]] = {}
     fit_ratio_vs_drake: dict[str, float | None]  # per point count: mvee_fast ÷ Drake time
     growth_exponent: float | None
 
@@ -94,7 +97,7 @@ class Machine(_Frozen):
 
 
 class BenchReport(_Frozen):
-    format: Literal["cvxnav.bench/2"] = FORMAT
+    format: Literal["cvxnav.bench/3"] = FORMAT
     command: str
     machine: Machine
     quick: bool

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -32,6 +33,9 @@ def test_quick_bench_writes_json_that_validates_against_its_schema(tmp_path: Pat
     rows = {p.planner: p for p in scenario.planners}
     assert rows["cvxnav"].success and rows["cvxnav"].length_ratio is not None
     assert rows["optimum (tangent graph)"].length_ratio == 1.0
+    for row in scenario.planners:  # every timed call is in the report, and the median is theirs
+        assert len(row.times_ms) == row.repeats
+        assert row.time_median_ms == (pytest.approx(statistics.median(row.times_ms)) if row.times_ms else None)
     peers = {"BIT* (OMPL)", "Informed RRT* (OMPL)", "IRIS + GCS (Drake)"}
     for name in peers:
         # Either measured, or skipped with a note that says how to get it.

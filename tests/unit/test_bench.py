@@ -195,3 +195,16 @@ def test_every_scaling_field_blocks_the_straight_line(count):
     assert len(scenario.obstacles) == count
     problem = BenchProblem.of(scenario)
     assert len(intersected(np.vstack([problem.start, problem.goals]), problem.grown))
+
+
+def test_the_time_ratio_interval_holds_the_ratio_and_narrows_with_more_calls():
+    from cvxnav.bench.runner import ratio_interval
+
+    rng = np.random.default_rng(3)
+    ours, theirs = rng.gamma(4.0, 1.0, 400), rng.gamma(4.0, 1.25, 400)  # medians' ratio about 0.8
+    few, many = ratio_interval(ours[:30], theirs[:30]), ratio_interval(ours, theirs)
+    assert many[0] < np.median(ours) / np.median(theirs) < many[1]
+    assert few[0] < np.median(ours[:30]) / np.median(theirs[:30]) < few[1]
+    assert many[1] - many[0] < 0.5 * (few[1] - few[0])  # about 1/sqrt(400/30) as wide
+    assert ratio_interval(ours, theirs) == many  # seeded: the same report from the same times
+    assert ratio_interval(ours[:1], theirs) is None  # one call has no spread to resample
