@@ -77,7 +77,7 @@ def fit_benchmark(*, counts: tuple[int, ...], repeats: int, with_drake: bool, se
                 continue
             reference = areas[method] if reference is None else reference
             results.append(FitResult(method=method, points=count, time_median_ms=statistics.median(times[method]),
-                                     area_rel_diff=abs(areas[method] - reference) / reference))
+                                     times_ms=times[method], area_rel_diff=abs(areas[method] - reference) / reference))
     return results
 
 

@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/3"  # /2: `ScalingPoint.local_exponent`; /3: `PlannerResult.times_ms`, the ratios' intervals
+FORMAT = "cvxnav.bench/3"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios' intervals
 
 
 class _Frozen(BaseModel):
@@ -55,6 +55,7 @@ class FitResult(_Frozen):
     method: str
     points: int = Field(gt=0)
     time_median_ms: float | None
+    times_ms: list[float] = []  # every timed call's time (the median is of these)
     area_rel_diff: float | None  # |area − reference area| / reference area (reference: mvee, cvxpy)
     error: str = ""
 
@@ -85,6 +86,7 @@ class TargetRatios(_Frozen):
     # per scenario: the ratio's 95 % bootstrap interval (both planners' calls resampled, seeded)
     time_ratio_vs_bitstar_interval: dict[str, tuple[float, float]] = {}
     fit_ratio_vs_drake: dict[str, float | None]  # per point count: mvee_fast ÷ Drake time
+    fit_ratio_vs_drake_interval: dict[str, tuple[float, float]] = {}  # the same 95 % bootstrap interval
     growth_exponent: float | None
 
 

@@ -320,14 +320,17 @@ def _targets(results: list[ScenarioResult], fit: list[FitResult], scaling: Scali
             if (interval := ratio_interval(ours.times_ms, bit.times_ms)) is not None:
                 intervals[scenario.name] = interval
     fit_ratio: dict[str, float | None] = {}
+    fit_intervals: dict[str, tuple[float, float]] = {}
     for count in sorted({f.points for f in fit}):
         fast = next((f for f in fit if f.points == count and f.method.startswith("mvee_fast")), None)
         drake = next((f for f in fit if f.points == count and f.method.startswith("Drake")), None)
         if fast and drake and fast.time_median_ms and drake.time_median_ms:
             fit_ratio[str(count)] = fast.time_median_ms / drake.time_median_ms
+            if (interval := ratio_interval(fast.times_ms, drake.times_ms)) is not None:
+                fit_intervals[str(count)] = interval
     return TargetRatios(length_ratio_worst=max(ratios) if ratios else None, time_ratio_vs_bitstar=time_ratios,
                         time_ratio_vs_bitstar_is_lower_bound=lower, time_ratio_vs_bitstar_interval=intervals,
-                        fit_ratio_vs_drake=fit_ratio,
+                        fit_ratio_vs_drake=fit_ratio, fit_ratio_vs_drake_interval=fit_intervals,
                         growth_exponent=scaling.growth_exponent if scaling else None)
 
 
@@ -336,7 +339,7 @@ def ratio_interval(ours_ms: Sequence[float], theirs_ms: Sequence[float], *, leve
     """The `level` bootstrap interval (percentile method) of median(ours) ÷ median(theirs), or None with
     fewer than two calls of either: how far the ratio could move with other draws of the same calls.
 
-    The two planners' calls are resampled independently: they were timed in turns, not in pairs. A
+    The two sets of calls are resampled independently: they were timed in turns, not in pairs. A
     sampling planner's spread (BIT* on corner-trap: 17 to 72 ms between the deciles of 40 runs) makes
     the ratio of two medians of about 30 calls move by some 15 % from run to run; the interval says so.
     """
@@ -390,15 +393,19 @@ def _target_lines(report: BenchReport) -> list[str]:
     lines = [f"length ÷ grown-ellipse optimum, worst over scenarios (target ≤ 1.01): {_num(t.length_ratio_worst, '.4f')}"]
     for name, ratio in t.time_ratio_vs_bitstar.items():
         bound = " (BIT* missed 1 % in budget: ratio vs budget)" if t.time_ratio_vs_bitstar_is_lower_bound.get(name) else ""
-        interval = t.time_ratio_vs_bitstar_interval.get(name)
-        spread = f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})" if interval else ""
+        spread = _spread(t.time_ratio_vs_bitstar_interval.get(name))
         lines.append(f"time ÷ BIT* time to 1 %, {name} (target ≤ 1): {_num(ratio, '.2f')}{spread}{bound}")
     for count, ratio in t.fit_ratio_vs_drake.items():
-        lines.append(f"fit time mvee_fast ÷ Drake, {count} points (target ≤ 1): {_num(ratio, '.2f')}")
+        lines.append(f"fit time mvee_fast ÷ Drake, {count} points (target ≤ 1): {_num(ratio, '.2f')}"
+                     f"{_spread(t.fit_ratio_vs_drake_interval.get(count))}")
     lines.append(f"planning-time growth exponent in obstacles (target ≤ 1): {_num(t.growth_exponent, '.2f')}")
     if report.scaling and (steep := _steepest(report.scaling)):
         lines.append(f"steepest local growth exponent: {steep[1]:.2f} ({steep[0]} obstacles)")
     return lines
+
+
+def _spread(interval: tuple[float, float] | None) -> str:
+    return f" (95 % interval {interval[0]:.2f}–{interval[1]:.2f})" if interval else ""
 
 
 def _steepest(scaling: ScalingResult) -> tuple[str, float] | None:
