@@ -183,8 +183,9 @@ def plan_ompl(
     States are checked by ‖A z + b‖ ≥ 1 and motions exactly by the segment test (a Python
     `MotionValidator`, not OMPL's sampled one), both by `EllipseStack` as cvxnav checks its straight
     line: numpy calls from C++, so OMPL's times include that callback overhead. The time is the time
-    to the target (the budget when it was not reached); `first_solution_s` is the time to the first path. Both sum over legs, which run one after another,
-    and both include building the checkers' arrays of the ellipses, as cvxnav's time includes its own.
+    to the target (the budget when it was not reached); `first_solution_s` is the time to the first
+    path. Both sum over legs, which run one after another, and both include building the checkers'
+    arrays of the ellipses, as cvxnav's time includes its own.
     """
     from ompl import base as ob
     from ompl import geometric as og

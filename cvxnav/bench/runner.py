@@ -229,9 +229,10 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         f"width/2 + safety − {COLLISION_TOLERANCE_M} m; a colliding planner counts as failed.",
         "Optimum = the exact tangent graph of the grown ellipses (common tangents, tangents from start and goals, "
         "free boundary arcs; services/planner/route.py at level 1): its length is the model's exact optimum.",
-        "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack's segment test, as cvxnav checks its straight line) in a "
-        "Python MotionValidator, so OMPL's times include Python callback overhead. Its times, like cvxnav's, include "
-        "building its arrays of the ellipses from the model and end with its path read out into an array.",
+        "OMPL validity: outside every grown ellipse; motions checked exactly (EllipseStack's segment test, as "
+        "cvxnav checks its straight line) in a Python MotionValidator, so OMPL's times include Python callback "
+        "overhead. Its times, like cvxnav's, include building its arrays of the ellipses from the model and end "
+        "with its path read out into an array.",
         "Drake: IRIS on the grown ellipses themselves, and on 32-gons circumscribing them (≤ 0.5 % larger) because "
         "Clarabel, the solver Drake has here (MOSEK unlicensed), often fails IRIS's ellipse SOCP.",
         "Peak memory: tracemalloc over one extra untimed call (Python and numpy allocations; not C++ inside OMPL/Drake/Clarabel).",
@@ -341,7 +342,7 @@ def ratio_interval(ours_ms: Sequence[float], theirs_ms: Sequence[float], *, leve
 
     The two sets of calls are resampled independently: they were timed in turns, not in pairs. A
     sampling planner's spread (BIT* on corner-trap: 17 to 72 ms between the deciles of 40 runs) makes
-    the ratio of two medians of about 30 calls move by some 15 % from run to run; the interval says so.
+    the ratio of two medians of about 30 calls move by 15–20 % from run to run; the interval says so.
     """
     if min(len(ours_ms), len(theirs_ms)) < 2:
         return None
