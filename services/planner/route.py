@@ -748,13 +748,16 @@ class _TangentGraph:
 def _polyline(frames: _Frames, graph, points, owner, unwrapped, chain: list[int]) -> FloatArray:
     """The route's points along the node chain: tangent segments straight, arcs circumscribed."""
     out = [points[chain[:1]]]
-    for a, b in zip(chain[:-1], chain[1:]):
+    # The graph holds each edge once, as (lower node, higher node); one lookup for the whole chain.
+    ends = np.sort(np.column_stack([chain[:-1], chain[1:]]), axis=1)
+    weights = np.asarray(graph[ends[:, 0], ends[:, 1]]).ravel()
+    for a, b, weight in zip(chain[:-1], chain[1:], weights):
         if owner[a] >= 0 and owner[a] == owner[b]:
             direct = unwrapped[b] - unwrapped[a]
             around = direct - np.sign(direct) * 2.0 * np.pi
             spans = np.array([direct, around])
             lengths = _arc_length(frames, np.full(2, owner[a]), np.full(2, unwrapped[a]), spans)
-            span = spans[int(np.argmin(np.abs(lengths - graph[min(a, b), max(a, b)])))]
+            span = spans[int(np.argmin(np.abs(lengths - weight)))]
             out.append(_arc_polyline(frames, int(owner[a]), float(unwrapped[a]), float(span))[1:])
         else:
             out.append(points[[b]])
