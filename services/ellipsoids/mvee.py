@@ -192,6 +192,10 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
 # --------------------------------------------------------------------------- numpy route
 
 _ACTIVE_SET_ROUNDS = 8
+# Todd–Yildirim steps before the first Newton round: they bring the start's worst violators in, so that
+# round usually works on the right support (20 random sets of 20 points: median 1018 -> 648 µs; of
+# 8 points 1086 -> 784 µs; 2 to 4 steps gain alike).
+_WARM_UP_STEPS = 3
 _LIFT = 3.0  # d + 1 for d = 2: at the optimum Mᵢ = qᵢᵀ X⁻¹ qᵢ equals 3 on the support and ≤ 3 elsewhere.
 
 
@@ -273,11 +277,13 @@ def mvee_fast_support(
 ) -> tuple[Ellipse, IntArray | None]:
     """Löwner–John ellipse of `points` by the dual of eq. (1), in numpy, and its support.
 
-    Newton on the support from the Kumar–Yildirim start (Kumar & Yildirim 2005: the extreme points
-    along each axis; in whitened coordinates most of the support, so no Todd–Yildirim warm-up is
-    needed), Todd–Yildirim steps to bring in violators, then the full Todd–Yildirim check: on return max Mᵢ ≤ 3 (1 + tol), which bounds the area above the optimum by a
-    factor (1 + tol) (Khachiyan's bound), and the ellipse is scaled to contain every point. From the
-    optimal weights u: centre c = Σ uᵢ xᵢ, shape E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
+    From the Kumar–Yildirim start (Kumar & Yildirim 2005: the extreme points along each axis, in
+    whitened coordinates most of the support), a few Todd–Yildirim steps bring in the worst
+    violators; then rounds of Newton on the support, each followed by one Todd–Yildirim step that
+    brings in a violator or drops a point, until its check passes: on return max Mᵢ ≤ 3 (1 + tol),
+    which bounds the area above the optimum by a factor (1 + tol) (Khachiyan's bound), and the
+    ellipse is scaled to contain every point. From the optimal weights u: centre c = Σ uᵢ xᵢ, shape
+    E = (Σ uᵢ xᵢ xᵢᵀ − c cᵀ)⁻¹ / 2, A = E^{1/2}, b = −A c.
 
     The support is the rows of `points` that carry weight (uᵢ > 0); None for a degenerate set, whose
     ellipse is fitted to fattened points. The weights depend on the support alone, so they are the
@@ -285,27 +291,27 @@ def mvee_fast_support(
     """
     z = _as_points(points)
     whitened = _whiten(z, eps_m=eps_m, hull=False)
-    vertices = whitened.u
-    Q = np.vstack([vertices.T, np.ones(len(vertices))])
+    unit = whitened.u
+    Q = np.vstack([unit.T, np.ones(len(unit))])
     # Kumar–Yildirim start: the extreme points along both (whitened) axes, usually most of the support.
-    u = np.zeros(len(vertices))
-    u[np.concatenate([np.argmin(vertices, axis=0), np.argmax(vertices, axis=0)])] = 1.0
+    u = np.zeros(len(unit))
+    u[np.concatenate([np.argmin(unit, axis=0), np.argmax(unit, axis=0)])] = 1.0
     if np.count_nonzero(u) < 3:  # a point extreme along both axes twice: no ellipse through two points
         u[:] = 1.0
     u /= u.sum()
-    done = False
+    u, done = _todd_yildirim(Q, u, tol=tol, max_iter=_WARM_UP_STEPS)
     for _ in range(_ACTIVE_SET_ROUNDS):
+        if done:
+            break
         # Newton on the support; one Todd–Yildirim step then brings in a violator or drops a point.
         u = _newton_polish(Q, u, tol=tol)
         u, done = _todd_yildirim(Q, u, tol=tol, max_iter=1)
-        if done:
-            break
     if not done:
         u, done = _todd_yildirim(Q, u, tol=tol, max_iter=max_iter)
     if not done:
         raise FitError(f"Todd–Yildirim iterations did not reach tolerance {tol:g} in {max_iter} steps")
-    c = vertices.T @ u
-    (s11, s12), (_, s22) = ((vertices.T * u) @ vertices - np.outer(c, c)).tolist()
+    c = unit.T @ u
+    (s11, s12), (_, s22) = ((unit.T * u) @ unit - np.outer(c, c)).tolist()
     det = s11 * s22 - s12 * s12
     if not (s11 > 0.0 and det > 0.0):  # Sylvester's criterion
         raise FitError("MVEE weights collapsed onto a degenerate support")
