@@ -11,7 +11,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/3"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios' intervals
+FORMAT = "cvxnav.bench/4"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios'
+# intervals; /4: the fit on several point sets (`FitResult.point_sets`)
 
 
 class _Frozen(BaseModel):
@@ -54,9 +55,10 @@ class FitResult(_Frozen):
 
     method: str
     points: int = Field(gt=0)
+    point_sets: int = Field(default=1, gt=0)  # seeded sets of `points` points; call k fits set k mod point_sets
     time_median_ms: float | None
     times_ms: list[float] = []  # every timed call's time (the median is of these)
-    area_rel_diff: float | None  # |area − reference area| / reference area (reference: mvee, cvxpy)
+    area_rel_diff: float | None  # max over the sets of |area − reference area| / reference area (reference: mvee, cvxpy)
     error: str = ""
 
 
@@ -99,7 +101,7 @@ class Machine(_Frozen):
 
 
 class BenchReport(_Frozen):
-    format: Literal["cvxnav.bench/3"] = FORMAT
+    format: Literal["cvxnav.bench/4"] = FORMAT
     command: str
     machine: Machine
     quick: bool

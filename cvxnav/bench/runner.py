@@ -65,6 +65,7 @@ class BenchOptions:
     drake_repeats: int = 2  # IRIS + GCS is slow and deterministic given its seed
     fit_counts: tuple[int, ...] = (20, 100, 1000)
     fit_repeats: int = 50  # mvee_fast and Drake take under 1 ms at 20 points
+    fit_sets: int = 10  # point sets per size: mvee_fast's time depends on the set
     scaling_counts: tuple[int, ...] = (10, 25, 50, 100, 200)
     scaling_repeats: int = 5  # plans per field, median taken: a median of 2 moved with one slow moment (all five: ~2.5 s)
     seed: int = 0
@@ -73,7 +74,8 @@ class BenchOptions:
     def quick_defaults(cls, *, repeats: int | None = None) -> BenchOptions:
         """Under two minutes on two cores: one repeat fewer everywhere, short budgets, a small scaling run."""
         return cls(quick=True, repeats=repeats or 2, min_timed_s=0.05, sampling_budget_s=1.0, drake_regions=8,
-                   drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, scaling_counts=(10, 25), scaling_repeats=1)
+                   drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, fit_sets=5, scaling_counts=(10, 25),
+                   scaling_repeats=1)
 
 
 @dataclass(frozen=True)
@@ -289,7 +291,8 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
         progress.update(task, description="fitting micro-benchmark")
         from cvxnav.bench.fitting import fit_benchmark, scaling_benchmark
 
-        fit = fit_benchmark(counts=options.fit_counts, repeats=options.fit_repeats, with_drake=not peers["drake"])
+        fit = fit_benchmark(counts=options.fit_counts, repeats=options.fit_repeats, sets=options.fit_sets,
+                            with_drake=not peers["drake"])
         progress.advance(task)
         progress.update(task, description="scaling: random fields")
         scaling = (
@@ -416,6 +419,14 @@ def _steepest(scaling: ScalingResult) -> tuple[str, float] | None:
     return max(steps, key=lambda step: step[1], default=None)
 
 
+_FIT_HEADER = ("points", "sets", "method", "median ms", "worst area rel. diff", "error")
+
+
+def _fit_rows(report: BenchReport) -> list[tuple[str, ...]]:
+    return [(str(f.points), str(f.point_sets), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"),
+             f.error) for f in report.fit]
+
+
 def print_report(report: BenchReport, *, console: Console) -> None:
     table = Table(title=f"cvxnav bench ({'quick' if report.quick else 'full'}, {report.repeats} repeats)")
     for column in _HEADER[:-1]:
@@ -430,10 +441,10 @@ def print_report(report: BenchReport, *, console: Console) -> None:
     for k, note in enumerate(notes, start=1):
         console.print(f"[{k}] {note}", markup=False, highlight=False)
     fit = Table(title="minimum-volume ellipse fit")
-    for column in ("points", "method", "median ms", "area rel. diff", "error"):
+    for column in _FIT_HEADER:
         fit.add_column(column)
-    for f in report.fit:
-        fit.add_row(str(f.points), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"), f.error)
+    for row in _fit_rows(report):
+        fit.add_row(*row)
     console.print(fit)
     if report.scaling:
         scale = Table(title=f"scaling (growth exponent {_num(report.scaling.growth_exponent, '.2f')})")
@@ -458,9 +469,7 @@ def to_markdown(report: BenchReport) -> str:
            + ", ".join(f"{k} {v}" for k, v in m.packages.items()) + ".",
            f"Command: `{report.command}` ({report.wall_s:.0f} s wall).", ""]
     out += table(_HEADER, _rows(report)) + [""]
-    out += table(("points", "method", "median ms", "area rel. diff", "error"),
-                 [(str(f.points), f.method, _num(f.time_median_ms, ".3f"), _num(f.area_rel_diff, ".1e"), f.error)
-                  for f in report.fit]) + [""]
+    out += table(_FIT_HEADER, _fit_rows(report)) + [""]
     if report.scaling:
         out += table(("obstacles", "grown ellipses", "cvxnav median ms", "local exponent", "ok"),
                      [(str(s.obstacles), str(s.grown_ellipses), _num(s.time_median_ms, ".0f"),

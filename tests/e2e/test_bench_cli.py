@@ -36,8 +36,9 @@ def test_quick_bench_writes_json_that_validates_against_its_schema(tmp_path: Pat
     for row in scenario.planners:  # every timed call is in the report, and the median is theirs
         assert len(row.times_ms) == row.repeats
         assert row.time_median_ms == (pytest.approx(statistics.median(row.times_ms)) if row.times_ms else None)
-    for fit in report.fit:
+    for fit in report.fit:  # quick: 5 calls over 5 seeded point sets, each area within 1e-6 of cvxpy's
         assert fit.error or fit.time_median_ms == pytest.approx(statistics.median(fit.times_ms))
+        assert fit.error or (fit.point_sets == len(fit.times_ms) == 5 and fit.area_rel_diff <= 1e-6)
     peers = {"BIT* (OMPL)", "Informed RRT* (OMPL)", "IRIS + GCS (Drake)"}
     for name in peers:
         # Either measured, or skipped with a note that says how to get it.
