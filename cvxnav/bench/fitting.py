@@ -5,9 +5,12 @@ Fitting: the minimum-volume (Löwner–John) ellipse of n random points by the p
 Drake's `Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid`, on several seeded sets of each size:
 `mvee_fast`'s time depends on the set (how many active-set rounds it takes to find the support: on
 20 seeded sets of 20 points it took 0.76 × Drake's time at the median, up to 1.57), so one set
-would measure its luck. Each gets the raw points; each is warmed up once per set (cvxpy's compile is cached per
-padded size) and then timed, the methods in turns (`cvxnav.bench.turns`), call k on set k mod sets;
-areas are compared with the cvxpy route's, set by set, and the worst difference is reported.
+would measure its luck. Each method gets the raw points and one warm-up call per set (cvxpy's compile
+is cached per padded size); a set that some method fails on (Drake's solver gives up on one of the
+1000-point sets) is reported in that method's row and left out of the timing, so every method is
+timed on the same sets. The methods are timed in turns (`cvxnav.bench.turns`), call k on the k-th of
+those sets (cyclically); areas are compared with the cvxpy route's, set by set, and the worst
+difference is reported.
 
 Scaling: cvxnav's planning time on seeded random fields of 10 … 200 obstacles in one fixed box (the
 shape of `field-60`), obstacles drawn like the public `field-*` scenarios (polygons, circles, point
@@ -17,6 +20,7 @@ of log(time) on log(obstacles).
 
 from __future__ import annotations
 
+import logging
 import statistics
 import time
 from collections.abc import Callable
@@ -43,6 +47,14 @@ def _ms(fn: Callable[[], float]) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
+def _area_or_error(fn: Callable[[int], float], k: int) -> float | str:
+    """The area `fn` fits to set k, or its error in one line."""
+    try:
+        return fn(k)
+    except Exception as error:  # a solver failure is a result, not a crash of the benchmark
+        return " ".join(f"{type(error).__name__}: {error}".split())[:200]
+
+
 def fit_benchmark(
     *, counts: tuple[int, ...], repeats: int, with_drake: bool, sets: int = 10, seed: int = 0
 ) -> list[FitResult]:
@@ -59,6 +71,7 @@ def fit_benchmark(
         if with_drake:
             from pydrake.geometry.optimization import Hyperellipsoid
 
+            logging.getLogger("drake").setLevel(logging.WARNING)  # its solver's give-ups are reported as errors
             columns = [np.asfortranarray(cloud.T) for cloud in clouds]
 
             def drake_area(k: int) -> float:
@@ -66,26 +79,26 @@ def fit_benchmark(
                 return float(np.pi / abs(np.linalg.det(ellipse.A())))
 
             methods.append(("Drake MinimumVolumeCircumscribedEllipsoid", drake_area))
-        areas: dict[str, list[float]] = {}  # one warm-up call per set each: the areas, or the first failure
-        failures: dict[str, str] = {}
-        for method, fn in methods:
-            try:
-                areas[method] = [fn(k) for k in range(sets)]
-            except Exception as error:  # a solver failure is a result, not a crash of the benchmark
-                failures[method] = f"{type(error).__name__}: {error}"[:200]
-        times = in_turns({method: lambda k, fn=fn: _ms(lambda: fn(k % sets)) for method, fn in methods if method in areas},
+        # One warm-up call per method and set: its area, or why it failed. A solver failure is a result,
+        # not a crash of the benchmark; the methods are timed on the sets that all of them solve.
+        outcomes = {method: [_area_or_error(fn, k) for k in range(sets)] for method, fn in methods}
+        working = [method for method, _ in methods if any(isinstance(o, float) for o in outcomes[method])]
+        common = [k for k in range(sets) if all(isinstance(outcomes[m][k], float) for m in working)]
+        timed = working if common else []
+        times = in_turns({m: lambda k, fn=fn: _ms(lambda: fn(common[k % len(common)])) for m, fn in methods if m in timed},
                          lambda method, done: len(done) < repeats, seed=seed + count)
-        reference: list[float] | None = None
+        reference = outcomes[timed[0]] if timed else []
         for method, _ in methods:
-            if method in failures:
+            errors = [o for o in outcomes[method] if isinstance(o, str)]
+            error = f"failed on {len(errors)} of {sets} sets: {errors[0]}" if errors else ""
+            if method not in timed:
                 results.append(FitResult(method=method, points=count, point_sets=sets, time_median_ms=None,
-                                         area_rel_diff=None, error=failures[method]))
+                                         area_rel_diff=None, error=error or "no set that every method solves"))
                 continue
-            reference = areas[method] if reference is None else reference
-            worst = max(abs(a - r) / r for a, r in zip(areas[method], reference))
-            results.append(FitResult(method=method, points=count, point_sets=sets,
+            worst = max(abs(outcomes[method][k] - reference[k]) / reference[k] for k in common)
+            results.append(FitResult(method=method, points=count, point_sets=len(common),
                                      time_median_ms=statistics.median(times[method]), times_ms=times[method],
-                                     area_rel_diff=worst))
+                                     area_rel_diff=worst, error=error))
     return results
 
 

@@ -208,3 +208,17 @@ def test_the_time_ratio_interval_holds_the_ratio_and_narrows_with_more_calls():
     assert many[1] - many[0] < 0.5 * (few[1] - few[0])  # about 1/sqrt(400/30) as wide
     assert ratio_interval(ours, theirs) == many  # seeded: the same report from the same times
     assert ratio_interval(ours[:1], theirs) is None  # one call has no spread to resample
+
+
+def test_the_fit_is_timed_on_the_sets_every_method_solves_and_a_failure_is_reported():
+    """Drake's solver gives up on one of the ten 1000-point sets (Clarabel: InsufficientProgress); every
+    method is then timed on the other nine, and Drake's row says where it failed."""
+    pytest.importorskip("pydrake")
+    from cvxnav.bench.fitting import fit_benchmark
+
+    rows = {r.method.split()[0]: r for r in fit_benchmark(counts=(1000,), repeats=3, with_drake=True)}
+    assert rows["Drake"].error.startswith("failed on 1 of 10 sets: RuntimeError")
+    for row in rows.values():
+        assert row.point_sets == 9 and len(row.times_ms) == 3
+        assert row.area_rel_diff <= 1e-6  # against the cvxpy route, on each of the nine sets
+    assert not rows["mvee_fast"].error and not rows["mvee"].error
