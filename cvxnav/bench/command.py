@@ -18,8 +18,9 @@ def add_bench_parser(commands: argparse._SubParsersAction) -> None:
     bench.add_argument("--json", type=Path, default=None, help="write the report as JSON")
     bench.add_argument("--markdown", type=Path, default=None, help="write the tables as Markdown")
     bench.add_argument("--schema", type=Path, default=None, help="write the report's JSON Schema")
-    bench.add_argument("--repeats", type=int, default=None, help="timed repeats per planner, exactly (default: at least 5, quick 2, and a fast planner "
-                       "again until 1 s, quick 0.05 s, of its time is measured, at most 200 calls)")
+    bench.add_argument("--repeats", type=int, default=None,
+                       help="timed repeats per planner, exactly (default: at least 5, quick 2, and a fast planner "
+                            "again until 1 s, quick 0.05 s, of its time is measured, at most 200 calls)")
     bench.add_argument("--budget-s", type=float, default=None,
                        help="per-leg budget of the sampling planners (default 5, quick 1)")
     bench.add_argument("--closed-loop", action="store_true",

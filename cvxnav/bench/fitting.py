@@ -85,8 +85,8 @@ def fit_benchmark(
         working = [method for method, _ in methods if any(isinstance(o, float) for o in outcomes[method])]
         common = [k for k in range(sets) if all(isinstance(outcomes[m][k], float) for m in working)]
         timed = working if common else []
-        times = in_turns({m: lambda k, fn=fn: _ms(lambda: fn(common[k % len(common)])) for m, fn in methods if m in timed},
-                         lambda method, done: len(done) < repeats, seed=seed + count)
+        calls = {m: lambda k, fn=fn: _ms(lambda: fn(common[k % len(common)])) for m, fn in methods if m in timed}
+        times = in_turns(calls, lambda method, done: len(done) < repeats, seed=seed + count)
         reference = outcomes[timed[0]] if timed else []
         for method, _ in methods:
             errors = [o for o in outcomes[method] if isinstance(o, str)]

@@ -55,11 +55,11 @@ class FitResult(_Frozen):
 
     method: str
     points: int = Field(gt=0)
-    point_sets: int = Field(default=1, gt=0)  # seeded sets of `points` points timed (those every method solved), in turn
+    point_sets: int = Field(default=1, gt=0)  # seeded sets of `points` points timed, in turn (those every method solved)
     time_median_ms: float | None
     times_ms: list[float] = []  # every timed call's time (the median is of these)
-    area_rel_diff: float | None  # max over the sets of |area − reference area| / reference area (reference: mvee, cvxpy)
-    error: str = ""  # why it failed; for a method timed on fewer sets than it was given, why it failed on the others
+    area_rel_diff: float | None  # max over the sets of |area − reference| / reference (reference: mvee, cvxpy)
+    error: str = ""  # why it failed (for a method timed on some sets only: why it failed on the others)
 
 
 class ScalingPoint(_Frozen):
