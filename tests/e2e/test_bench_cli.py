@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jsonschema
 import pytest
 
 from cvxnav.bench.report import BenchReport
@@ -25,7 +26,6 @@ def test_quick_bench_writes_json_that_validates_against_its_schema(tmp_path: Pat
     )
     assert done.returncode == 0, done.stderr[-2000:]
     document = json.loads(out.read_text())
-    jsonschema = pytest.importorskip("jsonschema")
     jsonschema.validate(document, json.loads(schema.read_text()))
     report = BenchReport.model_validate(document)
 
