@@ -4,8 +4,9 @@ Fitting: the minimum-volume (Löwner–John) ellipse of n random points by the p
 (`services.ellipsoids.mvee`, cvxpy + Clarabel; `mvee_fast`, Todd–Yildirim + Newton in numpy) and by
 Drake's `Hyperellipsoid.MinimumVolumeCircumscribedEllipsoid`, on several seeded sets of each size:
 `mvee_fast`'s time depends on the set (how many active-set rounds it takes to find the support: on
-20 seeded sets of 20 points it took 0.76 × Drake's time at the median, up to 1.57), so one set
-would measure its luck. Each method gets the raw points and one warm-up call per set (cvxpy's compile
+twenty seeded sets of 20 points it took 0.72 × Drake's time at the median and 1.09 × on the worst,
+and 0.62 × on the one set measured before, which needs a single round), so one set would measure
+its luck. Each method gets the raw points and one warm-up call per set (cvxpy's compile
 is cached per padded size); a set that some method fails on (Drake's solver gives up on one of the
 1000-point sets) is reported in that method's row and left out of the timing, so every method is
 timed on the same sets. The methods are timed in turns (`cvxnav.bench.turns`), call k on the k-th of
