@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from services.ellipsoids.mvee import FitError, mvee, mvee_fast
+from services.ellipsoids.mvee import FitError, mvee, mvee_fast, mvee_fast_support
 
 ROUTES = [mvee, mvee_fast]
 CONTAIN_TOL = 1e-9
@@ -59,6 +59,21 @@ def test_routes_agree_in_area(points):
 @pytest.mark.parametrize("fit", ROUTES)
 def test_every_point_is_inside(fit, points):
     assert np.max(fit(points).level(points)) <= 1.0 + CONTAIN_TOL
+
+
+@settings(max_examples=40, deadline=None)
+@given(points=point_sets)
+def test_the_numpy_support_lies_on_the_ellipse_and_interior_points_change_nothing(points):
+    """The numpy route fits every point, not only the hull's vertices: the points it puts weight on lie
+    on the ellipse, and points added strictly inside it neither enter the support nor move the ellipse."""
+    ellipse, support = mvee_fast_support(points)
+    if support is None:  # a degenerate set is fitted to fattened points, not its own
+        return
+    assert np.all(np.abs(ellipse.level(points[support]) - 1.0) <= 1e-6)
+    inner = ellipse.center + 0.5 * (points - ellipse.center)  # level halved: strictly inside
+    again, support_again = mvee_fast_support(np.vstack([points, inner]))
+    assert np.all(support_again < len(points))
+    assert abs(again.area - ellipse.area) <= 1e-8 * ellipse.area
 
 
 @pytest.mark.parametrize("fit", ROUTES)
