@@ -188,10 +188,14 @@ class _ClarabelPathProblem:
                 z ≤ min(c + τ, hi); −z ≤ −max(c − τ, lo); −slack ≤ 0; −elastic ≤ 0
       SOC(3)    (step_m, zᵢ₊₁ − zᵢ) for each step
       SOC(3)    (budgetᵢ + slackᵢ, zᵢ₊₁ − 2zᵢ + zᵢ₋₁) for each interior point
+    With `bounded=False` the box rows (z ≤ …, −z ≤ …) and the step cones are left out: the relaxation
+    `_ClarabelOnDemand` solves first.
     """
 
-    def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float) -> None:
-        self.n, self.slots, self.pinned_count = n, slots, pinned_count
+    def __init__(
+        self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, *, bounded: bool = True
+    ) -> None:
+        self.n, self.slots, self.pinned_count, self.bounded = n, slots, pinned_count, bounded
         nz = 2 * n
         self.size = nz + (n - 2) + n
         rows: list[np.ndarray] = []
@@ -232,15 +236,17 @@ class _ClarabelPathProblem:
                                                (np.arange(n * slots), elastic[obstacle_i], -np.ones(n * slots))])
         self.floor_rows = block(n - 1, [(step, xs(step), np.zeros(n - 1)), (step, ys(step), np.zeros(n - 1)),
                                         (step, xs(step + 1), np.zeros(n - 1)), (step, ys(step + 1), np.zeros(n - 1))])
-        self.upper_rows = block(nz, [(np.arange(nz), np.arange(nz), np.ones(nz))])
-        self.lower_rows = block(nz, [(np.arange(nz), np.arange(nz), -np.ones(nz))])
+        if bounded:
+            self.upper_rows = block(nz, [(np.arange(nz), np.arange(nz), np.ones(nz))])
+            self.lower_rows = block(nz, [(np.arange(nz), np.arange(nz), -np.ones(nz))])
         self.slack_rows = block(n - 2, [(np.arange(n - 2), slack, -np.ones(n - 2))])
         self.elastic_rows = block(n, [(np.arange(n), elastic, -np.ones(n))])
         nonneg_rows = self._row - zero_rows
         # Second-order cones: step bound, then curvature.
         t = 3 * step
-        self.step_cones = block(3 * (n - 1), [(t + 1, xs(step + 1), -np.ones(n - 1)), (t + 1, xs(step), np.ones(n - 1)),
-                                              (t + 2, ys(step + 1), -np.ones(n - 1)), (t + 2, ys(step), np.ones(n - 1))])
+        if bounded:
+            self.step_cones = block(3 * (n - 1), [(t + 1, xs(step + 1), -np.ones(n - 1)), (t + 1, xs(step), np.ones(n - 1)),
+                                                  (t + 2, ys(step + 1), -np.ones(n - 1)), (t + 2, ys(step), np.ones(n - 1))])
         t = 3 * (mid - 1)
         entries = [(t, slack, -np.ones(n - 2))]
         for offset, weight in ((1, -1.0), (0, 2.0), (-1, -1.0)):
@@ -257,7 +263,8 @@ class _ClarabelPathProblem:
         self._A = sparse.csc_matrix((v, (r, c)), shape=(self._row, self.size))
         self._A.data = v[self._order]
         self._b = np.zeros(self._row)
-        self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
+        if bounded:
+            self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
         self._b[self.obstacle_rows] = 1.0  # unused slots: 0 ≤ 1
         D = sparse.diags([np.ones(2 * (n - 1)), -np.ones(2 * (n - 1))], [2, 0], shape=(2 * (n - 1), nz))
         P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((2 * n - 2, 2 * n - 2))]).tocsc()
@@ -266,7 +273,7 @@ class _ClarabelPathProblem:
         self._cones = [
             clarabel.ZeroConeT(zero_rows),
             clarabel.NonnegativeConeT(nonneg_rows),
-            *[clarabel.SecondOrderConeT(3)] * (2 * n - 3),
+            *[clarabel.SecondOrderConeT(3)] * ((n - 1 if bounded else 0) + n - 2),
         ]
         settings = clarabel.DefaultSettings()
         settings.verbose = False
@@ -305,11 +312,12 @@ class _ClarabelPathProblem:
         d = data.step_direction
         v[floor] = np.concatenate([d[:, 0], d[:, 1], -d[:, 0], -d[:, 1]])
         b[self.floor_rows] = -data.step_floor
-        lo = np.tile(data.lo, n)
-        hi = np.tile(data.hi, n)
-        center = data.center.reshape(-1)
-        b[self.upper_rows] = np.minimum(center + data.trust_m, hi)
-        b[self.lower_rows] = -np.maximum(center - data.trust_m, lo)
+        if self.bounded:
+            lo = np.tile(data.lo, n)
+            hi = np.tile(data.hi, n)
+            center = data.center.reshape(-1)
+            b[self.upper_rows] = np.minimum(center + data.trust_m, hi)
+            b[self.lower_rows] = -np.maximum(center - data.trust_m, lo)
         b[self.curvature_cones.start : self.curvature_cones.stop : 3] = data.curvature_budget
         values = v[self._order]
         if self._solver is None:
@@ -341,13 +349,58 @@ class _ClarabelPathProblem:
         self._pinned_columns = tuple(pinned)
 
 
+class _ClarabelOnDemand:
+    """The Clarabel subproblem solved first without its box rows (trust region and map bounds) and step
+    cones, and again with them only when its answer breaks one of them.
+
+    Those constraints seldom bind: the points are spaced for the step bound to leave the path room to
+    lengthen, and one solve rarely moves a point by the trust region. An optimum of the relaxation that
+    meets them is an optimum of the whole subproblem (it is feasible there, and nothing feasible there
+    costs less), so the answer is the same up to the solver's tolerance. They are a quarter of the rows
+    and the step cones half of the cones: one solve of corner-trap's subproblem (n = 192), 13.1 → 9.7 ms.
+    """
+
+    def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float) -> None:
+        self._args = (n, slots, pinned_count, step_m, slack_weight)
+        self.step_m = step_m
+        self.relaxed = _ClarabelPathProblem(*self._args, bounded=False)
+        self.full: _ClarabelPathProblem | None = None  # set up when first needed
+
+    def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
+        # An iterate with a step at the bound (a path the curvature bound keeps lengthening) meets it again:
+        # solved whole at once. (Eight closed loops: 80 of 700 solves solved twice without this, 20 with it.)
+        if _longest_step(data.center) < 0.99 * self.step_m:
+            z, slack, elastic = self.relaxed.solve(data)
+            if _within_bounds(z, data, step_m=self.step_m):
+                return z, slack, elastic
+        if self.full is None:
+            self.full = _ClarabelPathProblem(*self._args)
+        return self.full.solve(data)
+
+
+def _longest_step(z: FloatArray) -> float:
+    steps = np.diff(z, axis=0)
+    return float(np.sqrt(np.max(np.einsum("ij,ij->i", steps, steps))))
+
+
+def _within_bounds(z: FloatArray, data: _Subproblem, *, step_m: float, tolerance: float = 1e-9) -> bool:
+    """Whether points meet the step bound, the trust region and the map bounds (as the whole subproblem
+    states them), to `tolerance`."""
+    return bool(
+        _longest_step(z) <= step_m + tolerance
+        and np.max(np.abs(z - data.center)) <= data.trust_m + tolerance
+        and np.min(z - data.lo) >= -tolerance
+        and np.min(data.hi - z) >= -tolerance
+    )
+
+
 @lru_cache(maxsize=16)
 def _problem(
     backend: str, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, solver: str
-) -> _CvxpyPathProblem | _ClarabelPathProblem:
+) -> _CvxpyPathProblem | _ClarabelOnDemand:
     if backend == "cvxpy":
         return _CvxpyPathProblem(n, slots, step_m, slack_weight, solver)
-    return _ClarabelPathProblem(n, slots, pinned_count, step_m, slack_weight)
+    return _ClarabelOnDemand(n, slots, pinned_count, step_m, slack_weight)
 
 
 def _bucket(n: int) -> int:

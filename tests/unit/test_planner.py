@@ -233,6 +233,33 @@ def test_direct_clarabel_route_agrees_with_the_cvxpy_model():
     assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
 
 
+@pytest.mark.parametrize("heading_rad, binds", [(0.0, False), (1.0, True)])
+def test_the_rows_the_first_clarabel_solve_leaves_out_hold_where_they_bind(heading_rad, binds):
+    """Clarabel first solves without the step cones and box rows. Heading for the goal past one disc,
+    they do not bind and the relaxation's answer stands. Heading 1 rad off it, the car must swing out,
+    the path lengthens until steps reach the paper's bound, and the whole subproblem is solved. Either
+    way the answer is the cvxpy model's, which has every row, after as many iterations."""
+    from services.planner.refine import _problem, refine
+
+    _problem.cache_clear()
+    obstacles = [Ellipse.circle(center=[4.0, 0.3], radius=1.2)]
+    legs = tangent_route(start=np.array([0.0, 0.0]), goals=np.array([[8.0, 0.0]]), ellipses=obstacles, **BOX)
+    results = {
+        backend: refine(legs=legs, ellipses=obstacles, max_curvature=0.8, heading_rad=heading_rad,
+                        settings=RefineSettings(backend=backend), **BOX)
+        for backend in ("cvxpy", "clarabel")
+    }
+    settings = RefineSettings()
+    z = results["clarabel"].points
+    on_demand = _problem("clarabel", len(z), settings.slots, 2, settings.step_m, settings.slack_weight, settings.solver)
+    assert (on_demand.full is not None) == binds
+    steps = np.linalg.norm(np.diff(z, axis=0), axis=1)
+    assert steps.max() <= settings.step_m + 1e-6
+    assert (steps.max() >= settings.step_m - 1e-6) == binds
+    assert results["cvxpy"].iterations == results["clarabel"].iterations
+    assert np.abs(results["cvxpy"].points - z).max() < 1e-4
+
+
 def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
     """A goal 1 m to the left of a car that turns no tighter than 2 m: no curve verifies. The repair with
     a wider margin and a sharper bend is skipped; the one with a narrower margin is still tried."""
