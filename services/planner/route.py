@@ -665,7 +665,7 @@ class _TangentGraph:
             self.pair_done[ii, jj] = True
 
     def build(self, bound: FloatArray):
-        """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles)."""
+        """The graph within the bounds: (csr graph, node points, node owners, unwrapped angles, arc spans)."""
         self._grow(bound)
         frames, t = self.frames, len(self.terminals)
         arcs = self.arcs
@@ -717,7 +717,8 @@ class _TangentGraph:
         on = on[np.lexsort((unwrapped[on], arc[on]))]
         consecutive = arc[on[:-1]] == arc[on[1:]]
         u, v = on[:-1][consecutive], on[1:][consecutive]
-        arc_len = _arc_length(frames, owner[u], unwrapped[u], unwrapped[v] - unwrapped[u])
+        arc_span = unwrapped[v] - unwrapped[u]
+        arc_len = _arc_length(frames, owner[u], unwrapped[u], arc_span)
         # An ellipse with no cut is one free loop: also join its last tangent point to its first.
         whole = arcs.count[owner[on]] == 0
         ends = on[whole]
@@ -728,12 +729,14 @@ class _TangentGraph:
             lu, fv = ends[last], ends[firstm]
             two = lu != fv
             lu, fv = lu[two], fv[two]
-            wrap_len = _arc_length(frames, owner[lu], unwrapped[lu], unwrapped[fv] + 2.0 * np.pi - unwrapped[lu])
+            wrap_span = unwrapped[fv] + 2.0 * np.pi - unwrapped[lu]
+            wrap_len = _arc_length(frames, owner[lu], unwrapped[lu], wrap_span)
             u, v = np.concatenate([u, lu]), np.concatenate([v, fv])
-            arc_len = np.concatenate([arc_len, wrap_len])
+            arc_len, arc_span = np.concatenate([arc_len, wrap_len]), np.concatenate([arc_span, wrap_span])
         i = np.concatenate([node_p, u])
         j = np.concatenate([node_q, v])
         w = np.concatenate([length, arc_len]) + 1e-12  # explicit zeros would be no edge
+        span = np.concatenate([np.zeros(len(length)), arc_span])  # the angle from i to j along an arc
         # Keep the shorter of parallel edges (two arcs joining the only two points of a loop).
         lo_, hi_ = np.minimum(i, j), np.maximum(i, j)
         order = np.lexsort((w, hi_, lo_))
@@ -742,23 +745,32 @@ class _TangentGraph:
         order = order[first]
         n = len(points)
         graph = coo_matrix((w[order], (lo_[order], hi_[order])), shape=(n, n)).tocsr()
-        return graph, points, owner, unwrapped
+        # Each kept edge's key lo · n + hi, ascending (the order sorts by lo, then hi), and its angle from lo.
+        spans = _Spans(keys=lo_[order] * n + hi_[order], from_lo=np.where(i == lo_, span, -span)[order], nodes=n)
+        return graph, points, owner, unwrapped, spans
 
 
-def _polyline(frames: _Frames, graph, points, owner, unwrapped, chain: list[int]) -> FloatArray:
+@dataclass(frozen=True)
+class _Spans:
+    """The angle each edge of the graph turns through along its arc (0 for a tangent segment), by edge."""
+
+    keys: FloatArray  # lo · nodes + hi of each edge (lo < hi), ascending
+    from_lo: FloatArray  # the signed angle from node lo to node hi
+    nodes: int
+
+    def between(self, a: FloatArray, b: FloatArray) -> FloatArray:
+        """The signed angle from node a to node b of each edge a–b."""
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        return np.where(a == lo, 1.0, -1.0) * self.from_lo[np.searchsorted(self.keys, lo * self.nodes + hi)]
+
+
+def _polyline(frames: _Frames, points, owner, unwrapped, spans: _Spans, chain: list[int]) -> FloatArray:
     """The route's points along the node chain: tangent segments straight, arcs circumscribed."""
     out = [points[chain[:1]]]
-    # The graph holds each edge once, as (lower node, higher node); one lookup for the whole chain.
-    ends = np.sort(np.column_stack([chain[:-1], chain[1:]]), axis=1)
-    weights = np.asarray(graph[ends[:, 0], ends[:, 1]]).ravel()
-    for a, b, weight in zip(chain[:-1], chain[1:], weights):
+    tails, heads = np.array(chain[:-1]), np.array(chain[1:])
+    for a, b, span in zip(chain[:-1], chain[1:], spans.between(tails, heads).tolist()):
         if owner[a] >= 0 and owner[a] == owner[b]:
-            direct = unwrapped[b] - unwrapped[a]
-            around = direct - np.sign(direct) * 2.0 * np.pi
-            spans = np.array([direct, around])
-            lengths = _arc_length(frames, np.full(2, owner[a]), np.full(2, unwrapped[a]), spans)
-            span = spans[int(np.argmin(np.abs(lengths - weight)))]
-            out.append(_arc_polyline(frames, int(owner[a]), float(unwrapped[a]), float(span))[1:])
+            out.append(_arc_polyline(frames, int(owner[a]), float(unwrapped[a]), span)[1:])
         else:
             out.append(points[[b]])
     return np.vstack(out)
@@ -803,7 +815,7 @@ def shortest_route(
         if not todo:
             return Route(legs=legs, lengths_m=lengths)
         active = np.where(np.isin(np.arange(len(goals)), todo), bound, 0.0)
-        graph, points, owner, unwrapped = tangents.build(active)
+        graph, points, owner, unwrapped, spans = tangents.build(active)
         dist, pred = dijkstra(graph, directed=False, indices=todo, return_predecessors=True)
         for row, leg in enumerate(todo):
             target = leg + 1
@@ -812,7 +824,7 @@ def shortest_route(
                 chain = [target]
                 while chain[-1] != leg:
                     chain.append(int(pred[row, chain[-1]]))
-                legs[leg] = _polyline(frames, graph, points, owner, unwrapped, chain[::-1])
+                legs[leg] = _polyline(frames, points, owner, unwrapped, spans, chain[::-1])
                 lengths[leg] = float(found)
             elif not np.isfinite(bound[leg]):
                 return None  # the whole graph has no route
