@@ -42,7 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_array
 from scipy.sparse.csgraph import dijkstra
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
@@ -757,9 +757,11 @@ class _TangentGraph:
         first[1:] = (lo_[order][1:] != lo_[order][:-1]) | (hi_[order][1:] != hi_[order][:-1])
         order = order[first]
         n = len(points)
-        graph = coo_matrix((w[order], (lo_[order], hi_[order])), shape=(n, n)).tocsr()
-        # Each kept edge's key lo · n + hi, ascending (the order sorts by lo, then hi), and its angle from lo.
-        spans = _Spans(keys=lo_[order] * n + hi_[order], from_lo=np.where(i == lo_, span, -span)[order], nodes=n)
+        # The order sorts by lo, then hi: the edges are already in CSR order, row lo, column hi.
+        rows, cols = lo_[order], hi_[order]
+        graph = csr_array((w[order], cols, np.searchsorted(rows, np.arange(n + 1))), shape=(n, n))
+        # Each kept edge's key lo · n + hi, ascending, and its angle from lo.
+        spans = _Spans(keys=rows * n + cols, from_lo=np.where(i == lo_, span, -span)[order], nodes=n)
         return graph, points, owner, unwrapped, spans
 
 
