@@ -188,14 +188,15 @@ class _ClarabelPathProblem:
                 z ≤ min(c + τ, hi); −z ≤ −max(c − τ, lo); −slack ≤ 0; −elastic ≤ 0
       SOC(3)    (step_m, zᵢ₊₁ − zᵢ) for each step
       SOC(3)    (budgetᵢ + slackᵢ, zᵢ₊₁ − 2zᵢ + zᵢ₋₁) for each interior point
-    With `bounded=False` the box rows (z ≤ …, −z ≤ …) and the step cones are left out: the relaxation
-    `_ClarabelOnDemand` solves first.
+    With `bounded` = k < n the box rows (z ≤ …, −z ≤ …) and the step cones are kept for the first k
+    points only: the relaxation that `_ClarabelOnDemand` solves first.
     """
 
     def __init__(
-        self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, *, bounded: bool = True
+        self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, *, bounded: int | None = None
     ) -> None:
-        self.n, self.slots, self.pinned_count, self.bounded = n, slots, pinned_count, bounded
+        self.n, self.slots, self.pinned_count = n, slots, pinned_count
+        self.bounded = kb = n if bounded is None else min(bounded, n)  # points with box rows and step cones
         nz = 2 * n
         self.size = nz + (n - 2) + n
         rows: list[np.ndarray] = []
@@ -236,17 +237,16 @@ class _ClarabelPathProblem:
                                                (np.arange(n * slots), elastic[obstacle_i], -np.ones(n * slots))])
         self.floor_rows = block(n - 1, [(step, xs(step), np.zeros(n - 1)), (step, ys(step), np.zeros(n - 1)),
                                         (step, xs(step + 1), np.zeros(n - 1)), (step, ys(step + 1), np.zeros(n - 1))])
-        if bounded:
-            self.upper_rows = block(nz, [(np.arange(nz), np.arange(nz), np.ones(nz))])
-            self.lower_rows = block(nz, [(np.arange(nz), np.arange(nz), -np.ones(nz))])
+        self.upper_rows = block(2 * kb, [(np.arange(2 * kb), np.arange(2 * kb), np.ones(2 * kb))])
+        self.lower_rows = block(2 * kb, [(np.arange(2 * kb), np.arange(2 * kb), -np.ones(2 * kb))])
         self.slack_rows = block(n - 2, [(np.arange(n - 2), slack, -np.ones(n - 2))])
         self.elastic_rows = block(n, [(np.arange(n), elastic, -np.ones(n))])
         nonneg_rows = self._row - zero_rows
         # Second-order cones: step bound, then curvature.
-        t = 3 * step
-        if bounded:
-            self.step_cones = block(3 * (n - 1), [(t + 1, xs(step + 1), -np.ones(n - 1)), (t + 1, xs(step), np.ones(n - 1)),
-                                                  (t + 2, ys(step + 1), -np.ones(n - 1)), (t + 2, ys(step), np.ones(n - 1))])
+        bounded_step = step[: kb - 1]
+        t, ones = 3 * bounded_step, np.ones(kb - 1)
+        self.step_cones = block(3 * (kb - 1), [(t + 1, xs(bounded_step + 1), -ones), (t + 1, xs(bounded_step), ones),
+                                              (t + 2, ys(bounded_step + 1), -ones), (t + 2, ys(bounded_step), ones)])
         t = 3 * (mid - 1)
         entries = [(t, slack, -np.ones(n - 2))]
         for offset, weight in ((1, -1.0), (0, 2.0), (-1, -1.0)):
@@ -263,8 +263,7 @@ class _ClarabelPathProblem:
         self._A = sparse.csc_matrix((v, (r, c)), shape=(self._row, self.size))
         self._A.data = v[self._order]
         self._b = np.zeros(self._row)
-        if bounded:
-            self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
+        self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
         self._b[self.obstacle_rows] = 1.0  # unused slots: 0 ≤ 1
         D = sparse.diags([np.ones(2 * (n - 1)), -np.ones(2 * (n - 1))], [2, 0], shape=(2 * (n - 1), nz))
         P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((2 * n - 2, 2 * n - 2))]).tocsc()
@@ -273,7 +272,7 @@ class _ClarabelPathProblem:
         self._cones = [
             clarabel.ZeroConeT(zero_rows),
             clarabel.NonnegativeConeT(nonneg_rows),
-            *[clarabel.SecondOrderConeT(3)] * ((n - 1 if bounded else 0) + n - 2),
+            *[clarabel.SecondOrderConeT(3)] * ((kb - 1) + (n - 2)),
         ]
         settings = clarabel.DefaultSettings()
         settings.verbose = False
@@ -312,12 +311,12 @@ class _ClarabelPathProblem:
         d = data.step_direction
         v[floor] = np.concatenate([d[:, 0], d[:, 1], -d[:, 0], -d[:, 1]])
         b[self.floor_rows] = -data.step_floor
-        if self.bounded:
-            lo = np.tile(data.lo, n)
-            hi = np.tile(data.hi, n)
-            center = data.center.reshape(-1)
-            b[self.upper_rows] = np.minimum(center + data.trust_m, hi)
-            b[self.lower_rows] = -np.maximum(center - data.trust_m, lo)
+        k = self.bounded
+        lo = np.tile(data.lo, k)
+        hi = np.tile(data.hi, k)
+        center = data.center[:k].reshape(-1)
+        b[self.upper_rows] = np.minimum(center + data.trust_m, hi)
+        b[self.lower_rows] = -np.maximum(center - data.trust_m, lo)
         b[self.curvature_cones.start : self.curvature_cones.stop : 3] = data.curvature_budget
         values = v[self._order]
         if self._solver is None:
@@ -351,19 +350,22 @@ class _ClarabelPathProblem:
 
 class _ClarabelOnDemand:
     """The Clarabel subproblem solved first without its box rows (trust region and map bounds) and step
-    cones, and again with them only when its answer breaks one of them.
+    cones past the first `lead` points, and again whole only when its answer breaks one of them.
 
     Those constraints seldom bind: the points are spaced for the step bound to leave the path room to
-    lengthen, and one solve rarely moves a point by the trust region. An optimum of the relaxation that
-    meets them is an optimum of the whole subproblem (it is feasible there, and nothing feasible there
-    costs less), so the answer is the same up to the solver's tolerance. They are a quarter of the rows
-    and the step cones half of the cones: one solve of corner-trap's subproblem (n = 192), 13.1 → 9.7 ms.
+    lengthen, and one solve rarely moves a point by the trust region, except where the car swings from
+    its heading onto the route, so the first turning radius keeps them (without that, four of five
+    200-obstacle fields broke them there in their first solve and were solved twice). An optimum of the
+    relaxation that meets them is an optimum of the whole subproblem (it is feasible there, and nothing
+    feasible there costs less), so the answer is the same up to the solver's tolerance. Past the lead
+    they are a quarter of the rows and the step cones half of the cones: one solve of corner-trap's
+    subproblem (n = 192), 13.1 → 9.7 ms.
     """
 
-    def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float) -> None:
+    def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, lead: int) -> None:
         self._args = (n, slots, pinned_count, step_m, slack_weight)
         self.step_m = step_m
-        self.relaxed = _ClarabelPathProblem(*self._args, bounded=False)
+        self.relaxed = _ClarabelPathProblem(*self._args, bounded=lead)
         self.full: _ClarabelPathProblem | None = None  # set up when first needed
 
     def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -396,11 +398,11 @@ def _within_bounds(z: FloatArray, data: _Subproblem, *, step_m: float, tolerance
 
 @lru_cache(maxsize=16)
 def _problem(
-    backend: str, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, solver: str
+    backend: str, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, solver: str, lead: int
 ) -> _CvxpyPathProblem | _ClarabelOnDemand:
     if backend == "cvxpy":
         return _CvxpyPathProblem(n, slots, step_m, slack_weight, solver)
-    return _ClarabelOnDemand(n, slots, pinned_count, step_m, slack_weight)
+    return _ClarabelOnDemand(n, slots, pinned_count, step_m, slack_weight, lead)
 
 
 def _bucket(n: int) -> int:
@@ -493,19 +495,24 @@ def refine(
     n = _bucket(int(np.ceil(total / settings.spacing_m)) + 1)
     z, goal_indices = resample_legs(legs, n=n)
     stack = EllipseStack.of(ellipses)
+    # The margin above level 1 gives the smoothed curve room; a robot that has just sensed an obstacle
+    # close ahead cannot give that room within its first turning radius, so there the plan only has to
+    # stay outside (the smoother still proves the continuous curve clear).
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
+    first_turn = along < 1.0 / max_curvature
+    level = np.where(first_turn, min(settings.start_level, settings.level), settings.level)
+    # Clarabel's first solve keeps the step and trust-region bounds over that stretch (`_ClarabelOnDemand`),
+    # its point count rounded up to a multiple of 8 so that similar plans share one compiled problem.
+    lead = 8 * -(-(int(np.count_nonzero(first_turn)) + 1) // 8) if settings.backend == "clarabel" else 0
     problem = _problem(
-        settings.backend, n, settings.slots, 1 + len(goal_indices), settings.step_m, settings.slack_weight, settings.solver
+        settings.backend, n, settings.slots, 1 + len(goal_indices), settings.step_m, settings.slack_weight,
+        settings.solver, lead,
     )
     pinned = np.zeros(n)
     pinned[[0, *goal_indices]] = 1.0
     pinned_points = z.copy()
     heading = np.zeros(2) if heading_rad is None else np.array([np.cos(heading_rad), np.sin(heading_rad)])
     kappa = settings.curvature_factor * max_curvature
-    # The margin above level 1 gives the smoothed curve room; a robot that has just sensed an obstacle
-    # close ahead cannot give that room within its first turning radius, so there the plan only has to
-    # stay outside (the smoother still proves the continuous curve clear).
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
-    level = np.where(along < 1.0 / max_curvature, min(settings.start_level, settings.level), settings.level)
 
     # The route itself is the first iterate: when it is already optimal (the exact tangent route often
     # is, up to the curvature bound) one solve confirms it.
