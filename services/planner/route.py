@@ -30,11 +30,12 @@ Tangent points inside another ellipse are dropped; every remaining tangent segme
 against the other ellipses (eq. 2 on the continuous segment). In a dense field nearly all of them are
 blocked, most through the depth of some ellipse: a point sampled on the segment in a grid cell wholly
 inside an ellipse proves that at a fraction of the exact test's cost (`_DeepCells`, built once enough
-segments wait for a test to pay for the grid), so only the rest get the exact one. Dijkstra then picks every side globally. Only points x with ‖x − from‖ + ‖x − to‖
-≤ bound can lie on a leg no longer than `bound`, so the graph is built within that informed ellipse,
-starting a little above the straight distance and widening it (to the length of a route found beyond
-the bound, else by a factor) until the leg found is within it — then it is the exact shortest.
-Tangents, cuts and segment tests are kept as it widens.
+segments wait for a test to pay for the grid), so only the rest get the exact one. Dijkstra then picks
+every side globally. Only points x with ‖x − from‖ + ‖x − to‖ ≤ bound can lie on a leg no longer than
+`bound`, so the graph is built within that informed ellipse, starting a little above the straight
+distance and widening it (to the length of a route found beyond the bound, else by a factor) until the
+leg found is within it — then it is the exact shortest. Tangents, cuts and segment tests are kept as it
+widens.
 """
 
 from __future__ import annotations
