@@ -260,6 +260,28 @@ def test_the_rows_the_first_clarabel_solve_leaves_out_hold_where_they_bind(headi
     assert np.abs(results["cvxpy"].points - z).max() < 1e-4
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_on_random_fields_the_clarabel_route_agrees_with_the_cvxpy_model(seed):
+    """Seeded 8-obstacle fields, the start heading 0.4 to 1.15 rad off the way to the goal, so that some
+    refinements take two or four solves and some of those solves meet the step bound: Clarabel, solving
+    first without the rows that seldom bind, answers as the cvxpy model with every row does."""
+    from cvxnav.bench.fitting import random_field
+    from cvxnav.bench.problem import BenchProblem
+    from services.planner.refine import refine
+
+    problem = BenchProblem.of(random_field(obstacles=8, seed=300 + seed, side_m=12.0))
+    box = dict(bounds_min=problem.bounds_min, bounds_max=problem.bounds_max)
+    legs = tangent_route(start=problem.start, goals=problem.goals, ellipses=problem.grown, level=RefineSettings().level, **box)
+    heading = np.pi / 4 + (-1) ** seed * (0.4 + 0.15 * seed)
+    results = {
+        backend: refine(legs=legs, ellipses=problem.grown, max_curvature=problem.scenario.max_curvature,
+                        heading_rad=heading, settings=RefineSettings(backend=backend), **box)
+        for backend in ("cvxpy", "clarabel")
+    }
+    assert results["cvxpy"].iterations == results["clarabel"].iterations
+    assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
+
+
 def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
     """A goal 1 m to the left of a car that turns no tighter than 2 m: no curve verifies. The repair with
     a wider margin and a sharper bend is skipped; the one with a narrower margin is still tried."""
