@@ -87,9 +87,11 @@ def _straight(
     goal_indices = tuple(accumulate(counts))
     points = np.empty((n, 2))
     points[0] = waypoints[0]
-    for p, goal, (ux, uy, length), count, end in zip(waypoints, waypoints[1:], legs, counts, goal_indices):
+    for (px, py), goal, (ux, uy, length), count, end in zip(waypoints, waypoints[1:], legs, counts, goal_indices):
         s = np.arange(1, count) * (length / count)  # the leg's inner points' distances from p
-        points[end - count + 1 : end] = np.multiply.outer(s, (ux, uy)) + p
+        inner = points[end - count + 1 : end]
+        inner[:, 0] = s * ux + px  # a column at a time, with plain floats: no tuple turned into an array
+        inner[:, 1] = s * uy + py
         points[end] = goal
     return PathPlan("ok", points, goal_indices)
 

@@ -134,9 +134,12 @@ def _judge(
     goal_tolerance_m: float,
     bounds_min: FloatArray,
     bounds_max: FloatArray,
+    box: tuple[list[float], list[float]] | None = None,
 ) -> Verification:
     """The verdict from the curve's samples `z` (ordered, the ends included), its unit direction at
-    the start, its clearance lower bound and its largest curvature."""
+    the start, its clearance lower bound and its largest curvature. `box`: the corners (lowest x and
+    y, highest x and y) of a box that holds the whole curve, when the caller knows one (a chord's ends
+    span its box); else the bounds are checked on the samples."""
 
     def fail(reason: str) -> Verification:
         return Verification(False, min_level, max_kappa, reason)
@@ -156,7 +159,13 @@ def _judge(
         misalignment = math.acos(min(max(alignment, -1.0), 1.0))
         if not misalignment <= 1e-3:
             return fail(f"curve leaves the start {misalignment:.4f} rad off the heading")
-    if not (float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9):  # (NaN fails)
+    if box is None:
+        inside = float((z - bounds_min).min()) >= -1e-9 and float((bounds_max - z).min()) >= -1e-9  # (NaN fails)
+    else:
+        (lx, ly), (hx, hy) = box
+        (bx0, by0), (bx1, by1) = np.asarray(bounds_min, dtype=float).tolist(), np.asarray(bounds_max, dtype=float).tolist()
+        inside = lx - bx0 >= -1e-9 and ly - by0 >= -1e-9 and bx1 - hx >= -1e-9 and by1 - hy >= -1e-9
+    if not inside:
         return fail("curve leaves the map bounds")
     w = as_complex(z)  # each goal's distances: one subtraction and one |·|
     cursor = 0
@@ -206,7 +215,8 @@ def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
     ux, uy = (x1 - x0) / length, (y1 - y0) / length
     # Each point's progress along the chord and its offset from it, in one product: z − z₀ turned by
     # the chord's angle backwards.
-    turned = as_complex(control - control[0]) * complex(ux, -uy)
+    w = as_complex(control)
+    turned = (w - w[0]) * complex(ux, -uy)
     along = turned.real
     steps = along[1:] - along[:-1]
     offset = float(np.abs(turned.imag).max())
@@ -282,12 +292,14 @@ def _smooth_straight(
     output_spacing_m: float,
 ) -> Smoothed:
     """A straight curve (see `_straight`): one eq. 2 segment test proves it clear, widened by its offset
-    from the chord; the other checks run on its samples, which are the points published."""
-    count = _sample_count(math.dist(start.tolist(), end.tolist()), spacing_m=output_spacing_m)
+    from the chord, and its ends' box widened so proves it within the bounds; the other checks run on
+    its samples, which are the points published."""
+    (x0, y0), (x1, y1) = start.tolist(), end.tolist()
+    count = _sample_count(math.hypot(x1 - x0, y1 - y0), spacing_m=output_spacing_m)
     t = np.arange(count) * (1.0 / (count - 1))  # np.linspace(0, 1, count), without its overhead
     t[-1] = 1.0
-    points = t[:, None] * (end - start)
-    points += start
+    # z₀ + t (zₙ − z₀) for each t, as complex numbers: two numpy calls, each coordinate as before.
+    points = (t * complex(x1 - x0, y1 - y0) + complex(x0, y0)).view(float).reshape(-1, 2)
     min_level = np.inf
     if ellipses:
         # One segment against every ellipse (no broad phase needed), less the offset from the chord scaled
@@ -307,5 +319,7 @@ def _smooth_straight(
         goal_tolerance_m=goal_tolerance_m,
         bounds_min=bounds_min,
         bounds_max=bounds_max,
+        # The curve lies within its offset of the chord, whose box its ends span.
+        box=([min(x0, x1) - offset_m, min(y0, y1) - offset_m], [max(x0, x1) + offset_m, max(y0, y1) + offset_m]),
     )
     return Smoothed(points=points, verification=verification)
