@@ -147,7 +147,7 @@ def plan_path(
     tight to turn in — and refined once more against the true ellipses.
     """
     start = np.asarray(start, dtype=float)
-    goals = np.atleast_2d(np.asarray(goals, dtype=float))
+    goals = np.asarray(goals, dtype=float).reshape(-1, 2)
     stack = EllipseStack.of(ellipses)
     straight = _straight(
         start=start,

@@ -17,6 +17,9 @@ The curve is published only if `verify` passes on the continuous curve:
   clear of ellipse j;
 - curvature |B′ × B″| / |B′|³ ≤ tan(δ_max)/L at the dense samples (16 per span, spans ~0.08 m long);
 - start point and heading, every goal within tolerance in order, bounds.
+
+Control points on a line (within 1e-9 of it, advancing along it) are smoothed to that line's chord,
+which a single exact segment test (eq. 2) proves clear.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ def verify(
 
     return _judge(
         z,
-        direction=d1[0] / speed[0],
+        direction=(d1[0] / speed[0]).tolist(),
         min_level=min_level,
         max_kappa=max_kappa,
         max_curvature=max_curvature,
@@ -124,7 +127,7 @@ def verify(
 def _judge(
     z: FloatArray,
     *,
-    direction: FloatArray,
+    direction: tuple[float, float] | list[float],
     min_level: float,
     max_kappa: float,
     max_curvature: float,
@@ -154,7 +157,7 @@ def _judge(
     if not math.hypot(x0 - sx, y0 - sy) <= 1e-6:
         return fail("curve does not start at the start")
     if heading_rad is not None:
-        ux, uy = direction.tolist()
+        ux, uy = direction
         alignment = ux * math.cos(heading_rad) + uy * math.sin(heading_rad)
         misalignment = math.acos(min(max(alignment, -1.0), 1.0))
         if not misalignment <= 1e-3:
@@ -197,34 +200,27 @@ def _sample_count(length_m: float, *, spacing_m: float) -> int:
     return max(2, math.ceil(length_m / (0.95 * spacing_m)) + 1)
 
 
-def _straight(control: FloatArray) -> tuple[FloatArray, float, float] | None:
-    """(unit direction, largest offset δ from the chord, curvature bound) when the control points
-    advance strictly along the chord z₀ → zₙ within 1e-9 of it, else None.
+def _chord(control: FloatArray) -> tuple[list[float], list[float]] | None:
+    """The ends z₀, zₙ of the control points when they advance strictly along the chord z₀ → zₙ within
+    1e-9 of it (relative to its length, at least 1 m), else None.
 
-    The curve is then the chord up to δ: each point of a B-spline is a convex combination of its
-    control points (the phantom ends mirror z₁ and zₙ₋₁ and stay within δ too), and its progress
-    along the chord is the B-spline of increasing values — increasing from z₀ to zₙ, no cusp. On
-    uniform knots h apart B′ = Σ Δcᵢ Nᵢ/h and B″ = Σ Δ²cᵢ Nᵢ/h² (convex weights), so with steps
-    along the chord in [s, S] (so |Δ² along| ≤ a = S − s) and normal offsets within δ: |B′| ≥ s/h,
-    |B′ₙ| ≤ 2δ/h, |B″ₙ| ≤ 4δ/h², |B″ₜ| ≤ a/h², and κ = |B′ × B″|/|B′|³ ≤ (4δ + 2δ a/s)/s².
+    Their smoothed curve is then the chord itself, at most that far from their B-spline: each point of
+    a B-spline is a convex combination of its control points (the phantom ends mirror z₁ and zₙ₋₁, so
+    they keep as close), and its progress along the chord is the B-spline of increasing values,
+    increasing from z₀ to zₙ, so it has no cusp and runs the chord once.
     """
-    (x0, y0), (x1, y1) = control[0].tolist(), control[-1].tolist()
+    (x0, y0), (x1, y1) = ends = control[0].tolist(), control[-1].tolist()
     length = math.hypot(x1 - x0, y1 - y0)
     if length <= 0.0:
         return None
-    ux, uy = (x1 - x0) / length, (y1 - y0) / length
     # Each point's progress along the chord and its offset from it, in one product: z − z₀ turned by
     # the chord's angle backwards.
     w = as_complex(control)
-    turned = (w - w[0]) * complex(ux, -uy)
+    turned = (w - w[0]) * complex((x1 - x0) / length, (y0 - y1) / length)
     along = turned.real
-    steps = along[1:] - along[:-1]
-    offset = float(np.abs(turned.imag).max())
-    shortest = float(steps.min())
-    if not (offset <= 1e-9 * max(length, 1.0) and shortest > 0.0):  # (NaN is not straight)
-        return None
-    bend = float(steps.max()) - shortest
-    return np.array([ux, uy]), offset, (4.0 * offset + 2.0 * offset * bend / shortest) / shortest**2
+    if not (float(np.abs(turned.imag).max()) <= 1e-9 * max(length, 1.0) and float((along[1:] - along[:-1]).min()) > 0.0):
+        return None  # (NaN is not straight)
+    return ends
 
 
 def smooth(
@@ -241,14 +237,10 @@ def smooth(
 ) -> Smoothed:
     """Smooth the optimised points into a verified curve, sampled for publication."""
     control = np.asarray(control, dtype=float)
-    straight = _straight(control) if len(control) >= 3 else None
-    if straight is not None:
-        return _smooth_straight(
-            control[0],
-            control[-1],
-            direction=straight[0],
-            offset_m=straight[1],
-            curvature_bound=straight[2],
+    chord = _chord(control) if len(control) >= 3 else None
+    if chord is not None:
+        return _smooth_chord(
+            *chord,
             ellipses=ellipses,
             max_curvature=max_curvature,
             heading_rad=heading_rad,
@@ -275,13 +267,10 @@ def smooth(
     return Smoothed(points=sample(curve, spacing_m=output_spacing_m, dense=dense), verification=verification)
 
 
-def _smooth_straight(
-    start: FloatArray,
-    end: FloatArray,
+def _smooth_chord(
+    start: list[float],
+    end: list[float],
     *,
-    direction: FloatArray,
-    offset_m: float,
-    curvature_bound: float,
     ellipses: list[Ellipse],
     max_curvature: float,
     heading_rad: float | None,
@@ -291,27 +280,22 @@ def _smooth_straight(
     bounds_max: FloatArray,
     output_spacing_m: float,
 ) -> Smoothed:
-    """A straight curve (see `_straight`): one eq. 2 segment test proves it clear, widened by its offset
-    from the chord, and its ends' box widened so proves it within the bounds; the other checks run on
-    its samples, which are the points published."""
-    (x0, y0), (x1, y1) = start.tolist(), end.tolist()
-    count = _sample_count(math.hypot(x1 - x0, y1 - y0), spacing_m=output_spacing_m)
-    t = np.arange(count) * (1.0 / (count - 1))  # np.linspace(0, 1, count), without its overhead
-    t[-1] = 1.0
+    """The chord start → end as the smoothed curve (see `_chord`): one eq. 2 segment test proves it
+    clear, its ends' box proves it within the bounds, it does not bend; the other checks run on its
+    samples, which are the points published."""
+    (x0, y0), (x1, y1) = start, end
+    length = math.hypot(x1 - x0, y1 - y0)
+    t = np.arange(count := _sample_count(length, spacing_m=output_spacing_m)) * (1.0 / (count - 1))
+    t[-1] = 1.0  # t: np.linspace(0, 1, count), without its overhead
     # z₀ + t (zₙ − z₀) for each t, as complex numbers: two numpy calls, each coordinate as before.
     points = (t * complex(x1 - x0, y1 - y0) + complex(x0, y0)).view(float).reshape(-1, 2)
-    min_level = np.inf
-    if ellipses:
-        # One segment against every ellipse (no broad phase needed), less the offset from the chord scaled
-        # into the ellipses' frames by 2 max|aᵢⱼ| ≥ ‖Aⱼ‖_F ≥ ‖Aⱼ‖₂ (`EllipseStack.stretch`, what
-        # `EllipseStack.min_segment_levels` scales a sag by): never a looser test than that one.
-        stack = EllipseStack.of(ellipses)
-        min_level = stack.polyline_level([start, end]) - offset_m * 2.0 * float(np.abs(stack.A).max())
+    # One segment against every ellipse: no broad phase needed.
+    min_level = EllipseStack.of(ellipses).polyline_level([start, end]) if ellipses else np.inf
     verification = _judge(
         points,
-        direction=direction,
+        direction=((x1 - x0) / length, (y1 - y0) / length),
         min_level=min_level,
-        max_kappa=curvature_bound,
+        max_kappa=0.0,
         max_curvature=max_curvature,
         start=start,
         heading_rad=heading_rad,
@@ -319,7 +303,6 @@ def _smooth_straight(
         goal_tolerance_m=goal_tolerance_m,
         bounds_min=bounds_min,
         bounds_max=bounds_max,
-        # The curve lies within its offset of the chord, whose box its ends span.
-        box=([min(x0, x1) - offset_m, min(y0, y1) - offset_m], [max(x0, x1) + offset_m, max(y0, y1) + offset_m]),
+        box=([min(x0, x1), min(y0, y1)], [max(x0, x1), max(y0, y1)]),
     )
     return Smoothed(points=points, verification=verification)
