@@ -454,10 +454,17 @@ def _linearise(
     h = np.full((n, slots), -1.0)
     if len(stack) == 0:
         return gx, gy, h
-    # Lower bound on the Euclidean distance to each ellipse: centre distance minus largest semi-axis.
-    near = np.linalg.norm(z[:, None, :] - stack.centers[None, :, :], axis=2) - stack.reach[None, :]
+    # Lower bound on the Euclidean distance to each ellipse: centre distance minus largest semi-axis
+    # (formed as np.linalg.norm forms it, without its (n, m, 2) differences).
+    dx = z[:, 0, None] - stack.centers[None, :, 0]
+    dy = z[:, 1, None] - stack.centers[None, :, 1]
+    near = np.sqrt(dx * dx + dy * dy) - stack.reach[None, :]
     k = min(slots, len(stack))
-    order = np.argsort(near, axis=1)[:, :k]
+    if k < len(stack):  # the k nearest of each row, then sorted: no sort of the whole row
+        order = np.argpartition(near, k - 1, axis=1)[:, :k]
+        order = np.take_along_axis(order, np.argsort(np.take_along_axis(near, order, axis=1), axis=1), axis=1)
+    else:
+        order = np.argsort(near, axis=1)
     within = np.zeros((n, slots), dtype=bool)
     within[:, :k] = near[np.arange(n)[:, None], order] <= 2.0 * trust_m + 0.5
     A = stack.A[order]  # (n, k, 2, 2)
