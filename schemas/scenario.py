@@ -20,6 +20,8 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from shapely.geometry.base import BaseGeometry
 
+from cvxnav.geometry import counter_clockwise
+
 FloatArray = NDArray[np.float64]
 
 SCENARIO_FORMAT = "cvxnav.scenario/1"
@@ -198,20 +200,13 @@ def _as_points(points: ArrayLike) -> FloatArray:
     return np.atleast_2d(np.asarray(points, dtype=float)).reshape(-1, 2)
 
 
-def _ccw(vertices: FloatArray) -> FloatArray:
-    """The same ring counter-clockwise (positive shoelace area)."""
-    x, y = vertices[:, 0], vertices[:, 1]
-    signed = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-    return vertices[::-1].copy() if signed < 0 else vertices
-
-
 def _hull_vertices(geom: BaseGeometry) -> FloatArray:
     """Vertices of a convex hull geometry: CCW ring for a polygon, endpoints for a segment, one point."""
     if isinstance(geom, shapely.Polygon):
         ring = np.asarray(geom.exterior.coords)[:-1]
         extent = float(np.ptp(ring, axis=0).max())
         if geom.area > 1e-12 * extent**2:
-            return _ccw(ring)
+            return counter_clockwise(ring)
         # A hull of points that coincide to rounding is a segment: keep its two extreme points.
         far = np.linalg.norm(ring[:, None, :] - ring[None, :, :], axis=2)
         i, j = np.unravel_index(np.argmax(far), far.shape)

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from cvxnav.geometry import Ellipse, FloatArray, as_complex
+from cvxnav.geometry import Ellipse, FloatArray, as_complex, counter_clockwise, ring_next, signed_area
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
 
 __all__ = ["Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon", "point_cover"]
@@ -47,33 +47,38 @@ def _boundary_samples(ellipse: Ellipse, *, tolerance_m: float) -> FloatArray:
     return ellipse.boundary(n)
 
 
-def _ccw(vertices: FloatArray) -> FloatArray:
-    x, y = vertices[:, 0], vertices[:, 1]
-    signed = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
-    return vertices[::-1] if signed < 0.0 else vertices
+class _ConvexPolygon:
+    """A convex CCW polygon (1-2 vertices allowed) with its edges formed once: a cover measures the
+    excess of every piece's ellipse against the same polygon."""
 
+    def __init__(self, vertices: FloatArray) -> None:
+        self.vertices = vertices
+        self.edge = ring_next(vertices) - vertices
+        length2 = np.einsum("ij,ij->i", self.edge, self.edge)
+        self.divisor = np.where(length2 > 0.0, length2, 1.0)
+        self.solid = len(vertices) >= 3 and signed_area(vertices) > _AREA_EPS
 
-def _distance_to_convex_polygon(points: FloatArray, vertices: FloatArray) -> FloatArray:
-    """Exact Euclidean distance from each point to a convex CCW polygon (0 inside); 1-2 vertices allowed."""
-    p = vertices
-    q = np.roll(vertices, -1, axis=0)
-    edge = q - p
-    rel = points[:, None, :] - p[None, :, :]
-    length2 = np.einsum("ij,ij->i", edge, edge)
-    t = np.clip(np.einsum("nij,ij->ni", rel, edge) / np.where(length2 > 0.0, length2, 1.0), 0.0, 1.0)
-    nearest = rel - t[:, :, None] * edge[None, :, :]
-    distance = np.min(np.linalg.norm(nearest, axis=2), axis=1)
-    if len(vertices) >= 3 and _area(vertices) > _AREA_EPS:
-        cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
-        distance = np.where(np.all(cross >= 0.0, axis=1), 0.0, distance)
-    return distance
+    def distance(self, points: FloatArray) -> FloatArray:
+        """Exact Euclidean distance from each point to the polygon (0 inside)."""
+        edge = self.edge
+        rel = points[:, None, :] - self.vertices[None, :, :]
+        t = np.clip(np.einsum("nij,ij->ni", rel, edge) / self.divisor, 0.0, 1.0)
+        nearest = rel - t[:, :, None] * edge[None, :, :]
+        distance = np.min(np.linalg.norm(nearest, axis=2), axis=1)
+        if self.solid:
+            cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
+            distance = np.where(np.all(cross >= 0.0, axis=1), 0.0, distance)
+        return distance
+
+    def excess(self, ellipse: Ellipse, *, tolerance_m: float) -> float:
+        """Largest distance from the ellipse boundary to the polygon (boundary sampled finely)."""
+        return float(np.max(self.distance(_boundary_samples(ellipse, tolerance_m=tolerance_m))))
 
 
 def excess_over_polygon(ellipse: Ellipse, vertices: ArrayLike, *, tolerance_m: float = 0.1) -> float:
     """Largest distance from the ellipse boundary to the convex polygon (boundary sampled finely)."""
-    polygon = _ccw(np.atleast_2d(np.asarray(vertices, dtype=float)))
-    samples = _boundary_samples(ellipse, tolerance_m=tolerance_m)
-    return float(np.max(_distance_to_convex_polygon(samples, polygon)))
+    polygon = _ConvexPolygon(counter_clockwise(np.atleast_2d(np.asarray(vertices, dtype=float))))
+    return polygon.excess(ellipse, tolerance_m=tolerance_m)
 
 
 def excess_over_points(ellipse: Ellipse, points: ArrayLike | cKDTree, *, tolerance_m: float = 0.1) -> float:
@@ -123,11 +128,6 @@ def _excess_over_points(ellipse: Ellipse, tree: cKDTree, *, tolerance_m: float) 
 # --------------------------------------------------------------------------- splitting
 
 
-def _area(vertices: FloatArray) -> float:
-    x, y = vertices[:, 0], vertices[:, 1]
-    return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-
-
 def _polygon_axis(vertices: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Centroid and long direction of a convex polygon from its area second moments.
 
@@ -140,11 +140,11 @@ def _polygon_axis(vertices: FloatArray) -> tuple[FloatArray, FloatArray]:
     """
     shift = vertices.mean(axis=0)
     v = vertices - shift
-    if len(v) < 3 or abs(_area(v)) <= _AREA_EPS:
+    if len(v) < 3 or abs(signed_area(v)) <= _AREA_EPS:
         _, R = np.linalg.eigh(v.T @ v)
         return shift + 0.5 * (v.min(axis=0) + v.max(axis=0)), R[:, -1]
     x, y = v[:, 0], v[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    xn, yn = ring_next(x), ring_next(y)
     cross = x * yn - xn * y
     area = 0.5 * np.sum(cross)
     centroid = np.array([np.sum((x + xn) * cross), np.sum((y + yn) * cross)]) / (6.0 * area)
@@ -155,7 +155,7 @@ def _polygon_axis(vertices: FloatArray) -> tuple[FloatArray, FloatArray]:
     w, R = np.linalg.eigh(moments)
     axis = R[:, -1]
     if w[-1] <= _ISOTROPIC_RATIO * w[0]:
-        edges = np.roll(v, -1, axis=0) - v
+        edges = ring_next(v) - v
         edges = edges[np.linalg.norm(edges, axis=1) > 0.0]
         directions = edges / np.linalg.norm(edges, axis=1)[:, None]
         extents = np.ptp(v @ directions.T, axis=0)
@@ -279,13 +279,15 @@ def cover_polygon(
     clipping, so every piece stays convex and the pieces tile the polygon). Degenerate
     polygons (1-2 vertices) are allowed and give thin ellipses. `fit` may be `mvee` to use the solver.
     """
-    polygon = _ccw(np.atleast_2d(np.asarray(vertices, dtype=float)))
+    polygon = np.atleast_2d(np.asarray(vertices, dtype=float))
     if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) == 0:
         raise FitError(f"vertices must be a non-empty (n, 2) array, got shape {polygon.shape}")
+    polygon = counter_clockwise(polygon)
+    solid = _ConvexPolygon(polygon)
 
     def make(piece: FloatArray, parent: Piece | None) -> Piece:
         e = fit(piece)
-        return Piece(points=piece, ellipse=e, excess_m=excess_over_polygon(e, polygon, tolerance_m=tolerance_m))
+        return Piece(points=piece, ellipse=e, excess_m=solid.excess(e, tolerance_m=tolerance_m))
 
     cover = _cover(polygon, make=make, split=_split_polygon, tolerance_m=tolerance_m, max_pieces=max_pieces)
     return [piece.ellipse for piece in cover.pieces]
