@@ -102,10 +102,14 @@ class Ellipse:
         w, R = np.linalg.eigh(self.A)
         lam = 1.0 / w**2  # eigenvalues of Q₁ = semi-axes²
         r2 = margin_m**2
+        lam1, lam2 = lam.tolist()
 
         def slope(log_p: float) -> float:
-            p = np.exp(log_p)
-            return float(np.sum((r2 - lam / p**2) / ((1 + 1 / p) * lam + (1 + p) * r2)))
+            # Two terms in plain floats (brentq calls this some forty times; numpy's calls on two
+            # numbers cost more than the arithmetic), the same operations in the same order.
+            p = float(np.exp(log_p))
+            p2, q, s = p**2, 1 + 1 / p, (1 + p) * r2
+            return (r2 - lam1 / p2) / (q * lam1 + s) + (r2 - lam2 / p2) / (q * lam2 + s)
 
         log_p = brentq(slope, -40.0, 40.0, xtol=1e-12)
         p = np.exp(log_p)
