@@ -124,9 +124,7 @@ class Ellipse:
 
     def boundary(self, n: int = 64) -> FloatArray:
         """`n` points evenly spaced in angle on the boundary."""
-        t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-        u = np.column_stack([np.cos(t), np.sin(t)])
-        return np.linalg.solve(self.A, (u - self.b).T).T
+        return np.linalg.solve(self.A, (_unit_circle(n) - self.b).T).T
 
     def tangent_points(self, point: ArrayLike) -> FloatArray | None:
         """The two points where lines through an outside `point` touch the ellipse; None from inside."""
@@ -332,6 +330,14 @@ class EllipseStack:
         sag = np.zeros(len(p)) if sag_m is None else np.asarray(sag_m, dtype=float)
         rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag, run=run)
         return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
+
+
+@lru_cache(maxsize=64)
+def _unit_circle(n: int) -> FloatArray:
+    """`n` points evenly spaced in angle on the unit circle (read-only, kept: a cover samples thousands of
+    ellipse boundaries at a few sizes)."""
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return _frozen(np.column_stack([np.cos(t), np.sin(t)]))
 
 
 @lru_cache(maxsize=8)
