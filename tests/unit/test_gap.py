@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from cvxnav.geometry import Ellipse
+from scipy.sparse.csgraph import connected_components
+
 from services.ellipsoids.gap import ellipse_gap, group_ellipses
 
 
@@ -61,6 +63,28 @@ def test_group_needs_the_socp_for_elongated_ellipses():
     ]
     assert len(set(group_ellipses(bars, min_gap_m=0.8))) == 2
     assert len(set(group_ellipses(bars, min_gap_m=1.2))) == 1
+
+
+def test_groups_are_the_components_of_every_pair_closer_than_the_gap():
+    # One long bar among small ellipses: the candidate pairs come from a KD-tree of the centres within
+    # min_gap + 2 × the largest semi-axis, which must still find a small ellipse beside the bar's middle,
+    # far from the bar's centre. Every pair's gap solved: the labels are those components.
+    rng = np.random.default_rng(3)
+    ellipses = [Ellipse.from_axes(center=(0.0, 0.0), semi_axes=(8.0, 0.2))]
+    ellipses += [Ellipse.from_axes(center=rng.uniform(-9, 9, 2), semi_axes=np.sort(rng.uniform(0.05, 0.6, 2))[::-1],
+                                   angle_rad=rng.uniform(0, 3)) for _ in range(29)]
+    ellipses.append(Ellipse.circle(center=(6.0, 0.9), radius=0.3))  # 0.4 from the bar, 6 m from its centre
+    min_gap = 0.5
+    m = len(ellipses)
+    close = np.zeros((m, m), dtype=bool)
+    for a in range(m):
+        for b in range(a + 1, m):
+            close[a, b] = ellipse_gap(ellipses[a], ellipses[b]).distance_m < min_gap
+    _, expected = connected_components(close, directed=False)
+    labels = group_ellipses(ellipses, min_gap_m=min_gap)
+    assert labels[0] == labels[-1]
+    assert len(set(expected)) < m - 1  # some groups form, and some ellipses stay apart
+    assert np.array_equal(labels[:, None] == labels[None, :], expected[:, None] == expected[None, :])
 
 
 def test_group_of_nothing_and_of_one():
