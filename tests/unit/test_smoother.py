@@ -109,6 +109,25 @@ def test_straight_control_points_are_judged_as_the_chord_they_are():
     assert "heading" in smooth(control, ellipses=[near], **turned).verification.reason
 
 
+def test_points_within_1e_9_of_their_chord_are_smoothed_to_it_and_points_further_off_are_not():
+    # A 14.14 m chord: a zigzag of 1e-8 m across it (under 1e-9 of its length) is smoothed to the chord
+    # itself, published as its samples, with no curvature; one of 1e-6 m is a B-spline, judged as one.
+    along = np.linspace([0.0, 0.0], [10.0, 10.0], 158)
+    across = np.array([-1.0, 1.0]) / np.sqrt(2.0) * np.resize([0.0, 1.0], 158)[:, None]
+    across[-1] = 0.0  # the ends stay put: the chord runs (0, 0) → (10, 10)
+    common = dict(ellipses=[Ellipse.circle(center=[5.0, 0.0], radius=1.0)], max_curvature=1.0,
+                  heading_rad=np.pi / 4, goals=np.array([[10.0, 10.0]]), goal_tolerance_m=0.3, **BOUNDS)
+    chord = smooth(along + 1e-8 * across, **common)
+    assert chord.verification.ok and chord.verification.max_curvature == 0.0
+    t = np.linspace(0.0, 1.0, len(chord.points))[:, None]
+    assert np.allclose(chord.points, t * [10.0, 10.0], rtol=0.0, atol=1e-12)  # on the chord, not the zigzag
+    assert np.linalg.norm(np.diff(chord.points, axis=0), axis=1).max() <= 0.05
+    curve = smooth(along + 1e-6 * across, **common)
+    assert curve.verification.max_curvature > 0.0  # the B-spline's own curvature, measured
+    backwards = smooth(along[::-1].copy(), **dict(common, heading_rad=-3 * np.pi / 4, goals=np.array([[0.0, 0.0]])))
+    assert backwards.verification.ok and backwards.verification.max_curvature == 0.0
+
+
 def test_the_verdict_does_not_depend_on_the_control_points_layout():
     # The straight test and the verdict read the points as complex numbers: a Fortran-ordered, float32
     # or strided array must give the same answer as a C-ordered float64 one.
