@@ -19,10 +19,9 @@ from cvxnav.bench import planners
 from cvxnav.bench.problem import BenchProblem, check_path
 from cvxnav.geometry import polyline_length
 from cvxnav.plan import plan_on_model
-from schemas.scenario import Scenario
+from schemas.scenario import Scenario, bundled_scenario
 
-PAPER_ROBOT = {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.5, "max_speed": 1.0,
-               "max_steering_angle": 0.2, "max_steering_rate": 0.5}
+PAPER = bundled_scenario()  # the paper's car and sensor
 
 
 def _rectangles(rows: list[str]) -> list[tuple[int, int, int, int]]:
@@ -53,8 +52,8 @@ def _scenario(rows: list[str], query: list[str]) -> Scenario:
         "format": "cvxnav.scenario/1",
         "name": f"arena-{query[4]}-{query[5]}-{query[6]}-{query[7]}",
         "bounds": {"min": [0, 0], "max": [len(rows[0]), len(rows)]},
-        "robot": PAPER_ROBOT,
-        "sensor": {"fov_deg": 180.0, "range": 5.0, "rays": 181, "rate_hz": 10.0},
+        "robot": PAPER.robot.model_dump(),
+        "sensor": PAPER.sensor.model_dump(),
         "start": {"x": sx, "y": sy, "theta": math.atan2(gy - sy, gx - sx)},
         "goals": [[gx, gy]],
         "goal_tolerance": 0.3,
