@@ -7,15 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_NO_PATH = 3
-EXIT_TIMEOUT_OR_COLLISION = 4
-EXIT_DIFFERS = 1  # cvxnav replay: the outputs did not reproduce
-
-
-class CliError(Exception):
-    """Bad input: printed as one line, exit code 2."""
+from cvxnav.exits import EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_NO_PATH, EXIT_OK, EXIT_TIMEOUT_OR_COLLISION, CliError
 
 
 def _load(scenario: Path | None):
@@ -30,8 +22,8 @@ def _load(scenario: Path | None):
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from cvxnav.geometry import polyline_length
     from cvxnav.plan import plan_scenario
+    from services.geometry import polyline_length
 
     scenario = _load(args.scenario)
     plan = plan_scenario(scenario)
@@ -51,10 +43,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 def _cmd_monitor(args: argparse.Namespace) -> int:
     import threading
 
-    from cvxnav.runtime import install_signal_handlers
-    from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
-    from services.monitor.stage import ViewerError, monitor_targets, run_monitor
+    from services.monitor.rerun import ViewerError, monitor_targets
+    from services.shell.monitor import run_monitor
+    from services.shell.stage import install_signal_handlers
+    from services.shell.zenoh_config import zenoh_config_from_args
 
     stop = threading.Event()
     install_signal_handlers(stop)
@@ -69,9 +62,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.run import RunError, serve
-    from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES
-    from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
+    from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
+    from services.shell.zenoh_config import zenoh_config_from_args
 
     if args.name == "monitor":
         return _cmd_monitor(args)
@@ -120,7 +113,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
     """`cvxnav service monitor` options for `run --record/--viewer/--viewer-url`; None: no monitor."""
-    from services.monitor.stage import monitor_arguments
+    from services.monitor.rerun import monitor_arguments
 
     if args.record is None and not args.viewer and args.viewer_url is None:
         return None
@@ -178,8 +171,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
     import zenoh
 
     from cvxnav.status import observe
-    from cvxnav.zenoh_config import zenoh_config_from_args
     from schemas.wiring import default_prefix
+    from services.shell.zenoh_config import zenoh_config_from_args
 
     prefix = args.prefix or default_prefix(robot_id=args.robot_id)
     try:
@@ -196,9 +189,9 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_router(args: argparse.Namespace) -> int:
     import threading
 
-    from cvxnav.runtime import install_signal_handlers
     from cvxnav.status import run_router
-    from cvxnav.zenoh_config import zenoh_config_from_args
+    from services.shell.stage import install_signal_handlers
+    from services.shell.zenoh_config import zenoh_config_from_args
 
     if not args.listen and args.zenoh_config is None:
         args.listen = ["tcp/0.0.0.0:7447"]
@@ -255,8 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--out", type=Path, default=Path("plan.json"), help="plan file to write")
     plan.set_defaults(handler=_cmd_plan)
 
-    from cvxnav.zenoh_config import add_zenoh_arguments
     from schemas.wiring import STAGES
+    from services.shell.zenoh_config import add_zenoh_arguments
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
     run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")

@@ -14,11 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cvxnav.geometry import Ellipse
-from schemas.files import EllipseModel, PlanFile, PlanTimings
+from schemas.files import PlanFile, PlanTimings
 from schemas.scenario import Scenario
+from services.convert import ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.gap import group_ellipses
+from services.geometry import Ellipse
 from services.planner.core import PathPlan, plan_until_verified
 from services.planner.refine import RefineSettings
 from services.smoother.core import Smoothed, smooth
@@ -113,6 +114,6 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         status="ok" if ok else "no_path",
         path=smoothed.points.tolist() if ok else [],
         raw_path=plan.points.tolist(),
-        ellipsoids=[EllipseModel.from_ellipse(e) for e in grown],
+        ellipsoids=[ellipse_to_model(e) for e in grown],
         timings_ms=PlanTimings(**clock.ms),
     )

@@ -28,9 +28,9 @@ from typing import Any
 
 from cvxnav.record import Recorded, Recording
 from cvxnav.run import DEFAULT_FACTORIES, load_factory
-from cvxnav.runtime import StageCore, StageInputError
 from schemas.messages import DecodeError, Message, StageStatus, decode
 from schemas.wiring import STAGES, key, model_for, status_key
+from services.contract import StageCore, StageInputError
 
 RTOL = 1e-6
 ATOL = 1e-9

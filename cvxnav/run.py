@@ -25,7 +25,7 @@ backoff that doubles with each recent restart (`RunOptions.restart_backoff_s`, c
 end the run (exit 4) with a line naming the stage and its log tail. The new process declares its
 liveliness token when it is up, and the sim, which brakes while a stage's token is gone, drives on
 once the restarted pipeline answers. Stages that keep state no later input restores (the sensing
-stage's point memory, the planner's plan) checkpoint it under `--state-dir` (`cvxnav.checkpoint`),
+stage's point memory, the planner's plan) checkpoint it under `--state-dir` (`services.shell.checkpoint`),
 one directory per stage, which outlives the process. The sim is not restarted: its exit ends the run.
 
 A stage is swapped by naming, in a JSON `stages` file, either a Python entry point
@@ -58,18 +58,21 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import zenoh
 
 from cvxnav.certs import client_config, missing_files, pipeline_names, router_config, write_deployment
+from cvxnav.exits import EXIT_BY_STATUS
 from cvxnav.record import MessageRecorder
-from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES, StageCore, install_signal_handlers, run_stage
-from cvxnav.zenoh_config import config_from_doc, endpoints_config
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
 from schemas.wiring import STAGES, default_prefix, key
+from services.contract import StageCore
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
+from services.shell.stage import install_signal_handlers, run_stage
+from services.shell.zenoh_config import config_from_doc, endpoints_config
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +83,6 @@ DEFAULT_FACTORIES: Mapping[str, str] = {
     "planner": "services.planner.stage:PlannerStage.from_scenario",
     "smoother": "services.smoother.stage:SmootherStage.from_scenario",
 }
-EXIT_BY_STATUS = {"reached": 0, "no_path": 3, "timeout": 4, "collision": 4}
 
 
 class RunError(Exception):
@@ -151,15 +153,6 @@ def load_stages(path: Path | None) -> dict[str, StageChoice]:
 # --------------------------------------------------------------------------- one stage as a process
 
 
-@runtime_checkable
-class Recoverable(Protocol):
-    """A stage core with state that must survive a restart of its process (see `cvxnav.checkpoint`)."""
-
-    def recover(self, *, state_dir: Path) -> None:
-        """Reload the state checkpointed in `state_dir`, if any, and checkpoint there from now on."""
-        ...
-
-
 def serve(
     *,
     name: str,
@@ -174,12 +167,13 @@ def serve(
     """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
 
     An input payload larger than `max_payload_bytes` is rejected before it is decoded. With
-    `state_dir`, a core that is `Recoverable` reloads its checkpointed state from there first.
+    `state_dir`, a `Stateful` core's state is saved there and restored from there.
     """
     stop = threading.Event()
     install_signal_handlers(stop)
     if name == "sim":
-        from sim.service import SimConfig, run_sim
+        from services.shell.sim import run_sim
+        from sim.core import SimConfig
 
         options = dict(sim_options or {})
         out_path = options.pop("out_path", None)
@@ -190,10 +184,8 @@ def serve(
     if name not in STAGES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(STAGES)}")
     core = load_factory(entry_point or DEFAULT_FACTORIES[name])(scenario)
-    if state_dir is not None and isinstance(core, Recoverable):
-        core.recover(state_dir=state_dir)
     run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
-              max_payload_bytes=max_payload_bytes)
+              max_payload_bytes=max_payload_bytes, state_dir=state_dir)
     return 0
 
 
@@ -453,7 +445,7 @@ def stop_processes(processes: list[subprocess.Popen], *, grace_s: float) -> list
 
 
 def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: float) -> None:
-    from sim.service import wait_for_stages
+    from services.shell.sim import wait_for_stages
 
     deadline = time.monotonic() + timeout_s
     missing = set(supervisor.children)  # the pipeline, and the monitor if asked
@@ -466,7 +458,7 @@ def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: fl
 
 def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFile | None, int]:
     """Run every stage as a process until the sim ends; the exit code, the run file and the restarts."""
-    from sim.service import default_time_limit_s
+    from sim.core import default_time_limit_s
 
     supervisor = Supervisor(options=options, scenario=scenario)
     progress = _Progress()

@@ -12,7 +12,6 @@ from typing import Literal, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from cvxnav.geometry import Ellipse
 from schemas.scenario import FieldError, Vec2, parse_json_model, read_text
 
 PLAN_FORMAT = "cvxnav.plan/1"
@@ -55,14 +54,6 @@ class EllipseModel(_Frozen):
         if not (a11 > 0.0 and a11 * a22 - a12 * a21 > 0.0):
             raise FieldError(("A",), "must be positive definite")
         return self
-
-    @classmethod
-    def from_ellipse(cls, ellipse: Ellipse) -> EllipseModel:
-        A = ellipse.A.tolist()
-        return cls(A=(tuple(A[0]), tuple(A[1])), b=tuple(ellipse.b.tolist()))
-
-    def to_ellipse(self) -> Ellipse:
-        return Ellipse(A=self.A, b=self.b)
 
 
 class PlanTimings(_Frozen):
@@ -110,7 +101,7 @@ class RunFile(_OutputFile):
 
     def backed_out(self) -> tuple[int, float]:
         """How many times, and how far in all (m), the car moved against its heading: backing out of
-        dead ends along its tracks (`sim.service`)."""
+        dead ends along its tracks (`sim.core`)."""
         traj = np.asarray(self.trajectory, dtype=float).reshape(-1, 4)
         along = np.einsum("ij,ij->i", np.diff(traj[:, 1:3], axis=0),
                           np.column_stack([np.cos(traj[:-1, 3]), np.sin(traj[:-1, 3])]))

@@ -20,8 +20,6 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from shapely.geometry.base import BaseGeometry
 
-from cvxnav.geometry import counter_clockwise
-
 FloatArray = NDArray[np.float64]
 
 SCENARIO_FORMAT = "cvxnav.scenario/1"
@@ -206,7 +204,7 @@ def _hull_vertices(geom: BaseGeometry) -> FloatArray:
         ring = np.asarray(geom.exterior.coords)[:-1]
         extent = float(np.ptp(ring, axis=0).max())
         if geom.area > 1e-12 * extent**2:
-            return counter_clockwise(ring)
+            return ring if shapely.is_ccw(geom.exterior) else ring[::-1].copy()
         # A hull of points that coincide to rounding is a segment: keep its two extreme points.
         far = np.linalg.norm(ring[:, None, :] - ring[None, :, :], axis=2)
         i, j = np.unravel_index(np.argmax(far), far.shape)

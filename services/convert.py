@@ -1,9 +1,11 @@
-"""Ellipses between their wire form (`EllipsoidMsg`) and the geometry the cores compute with."""
+"""Ellipses between their wire and file forms (`EllipsoidMsg`, `EllipseModel`) and the geometry the cores
+compute with: the models know no geometry, so the conversions live here, above both."""
 
 from __future__ import annotations
 
-from cvxnav.geometry import Ellipse
+from schemas.files import EllipseModel
 from schemas.messages import EllipsoidMsg, Header
+from services.geometry import Ellipse
 
 
 def ellipse_to_msg(ellipse: Ellipse, *, group: int, cluster_id: int) -> EllipsoidMsg:
@@ -17,6 +19,16 @@ def ellipse_to_msg(ellipse: Ellipse, *, group: int, cluster_id: int) -> Ellipsoi
 
 def ellipses_from_msgs(messages: list[EllipsoidMsg]) -> list[Ellipse]:
     return [Ellipse(A=msg.A, b=msg.b) for msg in messages]
+
+
+def ellipse_to_model(ellipse: Ellipse) -> EllipseModel:
+    """The ellipse as `plan.json` writes it (CONTRACTS §4): A and b as computed."""
+    A = ellipse.A.tolist()
+    return EllipseModel(A=(tuple(A[0]), tuple(A[1])), b=tuple(ellipse.b.tolist()))
+
+
+def ellipse_from_model(model: EllipseModel) -> Ellipse:
+    return Ellipse(A=model.A, b=model.b)
 
 
 def answer_header(*, scan_header: Header, seq: int) -> Header:

@@ -17,11 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cvxnav.geometry import FloatArray
-from cvxnav.runtime import StageInputError
 from schemas.messages import EllipsoidMsg, Pose2D
 from schemas.scenario import Scenario
+from services.contract import StageInputError
+from services.geometry import FloatArray
 
+DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20  # an input message larger than this is rejected undecoded
 MAX_SENSED_POINTS = 50_000  # points the sensing stage remembers; so at most this many per Clusters
 MAX_ELLIPSES = 1024  # per Ellipsoids / RawPath message: far above a real map's, far below a stall
 MAX_PATH_POINTS = 10_000  # per RawPath / SmoothPath: 1 km at the planner's 0.1 m step

@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cvxnav.geometry import EllipseStack, FloatArray, keep_out_scales
 from schemas.messages import Ellipsoids
+from services.geometry import EllipseStack, FloatArray, keep_out_scales
 
 START_SLACK = 0.03
 LEVEL_TOL = 1e-3

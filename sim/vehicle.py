@@ -9,7 +9,7 @@ Consequence worth knowing: at steering δ the rear axle turns on radius R = L / 
 minimum turn radius), while the footprint centre turns on the slightly larger sqrt(R² + (L/2)²).
 
 The car reverses (negative speed) only when asked to, no faster than `max_reverse_speed_mps`: the sim
-backs it out of a dead end along its own tracks (`sim.service`). A change of direction comes to rest
+backs it out of a dead end along its own tracks (`sim.core`). A change of direction comes to rest
 first: a step that would cross zero speed ends at rest.
 
 Within one step the steering angle and the speed ramp linearly from their old to their new (limited)

@@ -20,10 +20,11 @@ import numpy as np
 from pydantic import BaseModel
 
 from cvxnav.run import DEFAULT_FACTORIES, PIPELINE, load_factory
-from cvxnav.runtime import StageInputError, freeze_startup_objects
 from schemas.messages import Ellipsoids, SmoothPath
 from schemas.scenario import Scenario
-from sim.service import SimCore
+from services.contract import StageInputError
+from services.shell.stage import freeze_startup_objects
+from sim.core import SimCore
 
 STAGE_ORDER = PIPELINE  # sensing -> ellipsoids -> planner -> smoother
 

@@ -32,7 +32,7 @@ def add_bench_parser(commands: argparse._SubParsersAction) -> None:
 
 def _scenarios(paths: list[Path], *, quick: bool) -> list:
     from cvxnav.bench.runner import default_scenario_dir
-    from cvxnav.cli import CliError
+    from cvxnav.exits import CliError
     from schemas.scenario import ScenarioError, bundled_scenario, load_scenario
 
     if not paths:
@@ -56,7 +56,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     from cvxnav.bench.report import BenchReport
     from cvxnav.bench.runner import BenchOptions, command_line, print_report, run_bench, to_markdown
-    from cvxnav.cli import CliError
+    from cvxnav.exits import CliError
 
     if args.repeats is not None and args.repeats < 1:
         raise CliError(f"--repeats must be at least 1, got {args.repeats}")
@@ -91,7 +91,7 @@ def _closed_loop(scenarios: list, args: argparse.Namespace) -> int:
     from cvxnav.bench.closed_loop import ClosedLoopReport, closed_loop_markdown, run_closed_loop
     from cvxnav.bench.problem import reference_lengths
     from cvxnav.bench.runner import default_scenario_dir
-    from sim.service import default_time_limit_s
+    from sim.core import default_time_limit_s
 
     references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
     rows = []

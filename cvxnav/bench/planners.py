@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from cvxnav.bench.problem import BenchProblem
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
+from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
 
 
 @dataclass(frozen=True)

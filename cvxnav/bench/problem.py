@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
 from schemas.scenario import Scenario
+from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
 
 # The true-geometry check allows this much less than width/2 + safety: the grown ellipses are built
 # from a 16-gon cover of each circle, so a path hugging one may sit a few mm inside the exact margin.

@@ -21,8 +21,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from cvxnav.geometry import Ellipse, FloatArray, as_complex, counter_clockwise, ring_next, signed_area
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
+from services.geometry import Ellipse, FloatArray, as_complex, counter_clockwise, ring_next, signed_area
 
 __all__ = ["Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon", "point_cover"]
 

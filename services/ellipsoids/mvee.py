@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import lapack
 from scipy.spatial import ConvexHull
 
-from cvxnav.geometry import Ellipse, FloatArray
+from services.geometry import Ellipse, FloatArray
 
 IntArray = NDArray[np.intp]
 

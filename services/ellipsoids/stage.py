@@ -24,13 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.geometry import Ellipse
-from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Clusters, Ellipsoids
 from schemas.scenario import Scenario
+from services.contract import Outputs, StageInputError
 from services.convert import answer_header, ellipse_to_msg
 from services.ellipsoids.cover import Piece, point_cover
 from services.ellipsoids.gap import gap_samples, group_ellipses
+from services.geometry import Ellipse
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
 
 

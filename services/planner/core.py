@@ -17,11 +17,10 @@ from typing import Literal
 
 import numpy as np
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, EllipseStack, FloatArray
 from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
 from services.planner.route import tangent_route
 from services.smoother.core import Smoothed
-
 
 _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel need no turn
 

@@ -40,7 +40,7 @@ import clarabel
 import numpy as np
 from scipy import sparse
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
+from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
 
 _OK = ("optimal", "optimal_inaccurate")  # cvxpy's status strings
 

@@ -46,7 +46,7 @@ import numpy as np
 from scipy.sparse import csr_array
 from scipy.sparse.csgraph import dijkstra
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, EllipseStack, FloatArray
 
 _CHUNK = 20_000  # segments checked at once: bounds the memory of the broad phase
 _ROOT_TOL = 1e-6  # a quartic root this close to the unit circle is a real angle

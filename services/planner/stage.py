@@ -12,14 +12,14 @@ repairs as `cvxnav plan`), so the smoother downstream is handed a path it can ac
 newly grown covers have boxed in, with no turn left inside the full margin, plans with the margin
 within a turning radius of it given up down to the run's hard floor (`relieved_scales`), never past it;
 boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
-tracks (`sim.service`): the planner plans forward motion only.
+tracks (`sim.core`): the planner plans forward motion only.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
 replaces the state or ellipsoids the planner holds.
 
-With a state directory (`recover`) the current plan and the plan counter are checkpointed on every
-replan, and a restarted stage reloads them. Nothing unsafe rides on this: a reloaded plan is only
+The current plan and the plan counter are the core's `state()`: the shell checkpoints them on every
+replan, and hands them to a restarted stage's `restore()`. Nothing unsafe rides on this: a reloaded plan is only
 re-published after the same check against the newest ellipsoids as any kept plan (`_still_valid`),
 else the stage replans. What it keeps is continuity: the car resumes the route it was committed to
 (a fresh plan from a standstill may go round the other side of an obstacle) and plan ids stay unique,
@@ -31,18 +31,16 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 import shapely
 from pydantic import BaseModel
 
-from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
-from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import Ellipsoids, RawPath, RobotState
 from schemas.scenario import Scenario
+from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
+from services.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
 from services.limits import Reach
 from services.planner.core import PathPlan, intersected, plan_until_verified
 from services.planner.refine import RefineSettings, SolverFailure, refine
@@ -209,7 +207,7 @@ def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
 class PlannerStage:
     def __init__(self, *, config: PlannerConfig) -> None:
         self.config = config
-        self.state: RobotState | None = None  # the newest robot state
+        self.robot_state: RobotState | None = None  # the newest robot state
         self.pending: Ellipsoids | None = None  # ellipsoids waiting for the state of their scan
         self.plan: FloatArray | None = None  # the current plan (points), None when there is none
         self.plan_goal_base = 0  # goals reached when the current plan was made
@@ -217,33 +215,26 @@ class PlannerStage:
         self.plan_margin = 0  # the `_repair_margins` entry the current plan was last repaired at
         self.plan_id = 0
         self._seq = 0
-        self._checkpoint: Path | None = None
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> PlannerStage:
         return cls(config=PlannerConfig.from_scenario(scenario))
 
-    def recover(self, *, state_dir: Path) -> None:
-        """Reload the plan checkpointed in `state_dir` (if any); checkpoint it there on every replan."""
-        self._checkpoint = state_dir / "plan.json"
-        data = read_checkpoint(self._checkpoint)
-        if data is None:
-            return
+    def state(self) -> bytes:
+        """The current plan, the goals reached when it was made and the plan counter, as JSON."""
+        plan = None if self.plan is None else self.plan.tolist()
+        return json.dumps({"plan": plan, "goal_base": self.plan_goal_base, "plan_id": self.plan_id}).encode()
+
+    def restore(self, data: bytes) -> None:
         try:
             doc = json.loads(data)
             plan = None if doc["plan"] is None else np.asarray(doc["plan"], dtype=float).reshape(-1, 2)
             goal_base, plan_id = int(doc["goal_base"]), int(doc["plan_id"])
         except (ValueError, TypeError, KeyError) as error:
-            raise CheckpointError(f"{self._checkpoint}: not a plan checkpoint: {error!r}") from None
+            raise StateError(f"not a plan checkpoint: {error!r}") from None
         if plan is not None and not np.all(np.isfinite(plan)):
-            raise CheckpointError(f"{self._checkpoint}: the plan has non-finite points")
+            raise StateError("the plan has non-finite points")
         self.plan, self.plan_goal_base, self.plan_id = plan, goal_base, plan_id
-
-    def _save(self) -> None:
-        if self._checkpoint is not None:
-            plan = None if self.plan is None else self.plan.tolist()
-            doc = {"plan": plan, "goal_base": self.plan_goal_base, "plan_id": self.plan_id}
-            write_atomic(self._checkpoint, json.dumps(doc).encode())
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         """Plan for a scan once both its ellipsoids and the robot state of that scan are here.
@@ -254,7 +245,7 @@ class PlannerStage:
         """
         if isinstance(message, RobotState):
             self._check_state(message)
-            self.state = message
+            self.robot_state = message
             pending, self.pending = self.pending, None
             if pending is not None and pending.scan_seq == message.header.seq:
                 return self._plan(pending, message)
@@ -262,10 +253,10 @@ class PlannerStage:
         if not isinstance(message, Ellipsoids):
             raise StageInputError(f"planner does not handle {topic!r}")
         self.config.reach.check_ellipses(message.ellipsoids, what="ellipsoids")
-        if self.state is None or self.state.header.seq < message.scan_seq:
+        if self.robot_state is None or self.robot_state.header.seq < message.scan_seq:
             self.pending = message  # the state of this scan is still on its way
             return []
-        return self._plan(message, self.state)
+        return self._plan(message, self.robot_state)
 
     def _check_state(self, state: RobotState) -> None:
         goals = len(self.config.goals)
@@ -305,7 +296,6 @@ class PlannerStage:
                 points, self.plan_margin = repaired
                 self.plan_id += 1
                 self.plan = points
-                self._save()
         if points is None:
             plan, used, relief_used = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
                                                    ellipses=ellipses, relieved=relieved)
@@ -318,7 +308,6 @@ class PlannerStage:
                 logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
                 self.plan = None
                 status, reason, points = "no_path", plan.reason, np.zeros((0, 2))
-            self._save()
         wire = [
             ellipse_to_msg(ellipse, group=msg.group, cluster_id=msg.cluster_id)
             for ellipse, msg in zip(used, message.ellipsoids)

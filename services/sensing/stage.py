@@ -11,23 +11,21 @@ inside the map, every hit within the sensor's range of it (10 % slack for range 
 else would stay in the memory for good, so it is rejected whole.
 
 The memory is the one state of the pipeline that no later input restores (a point out of view is not
-seen again), so with a state directory (`recover`) it is checkpointed after every scan that adds to it,
-before the clusters that depend on it are published, and a restarted stage reloads it.
+seen again): it is the core's `state()`, which the shell checkpoints after every scan that adds to it,
+before the clusters that depend on it are published, and hands a restarted stage's `restore()`.
 """
 
 from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.checkpoint import CheckpointError, read_checkpoint, write_atomic
-from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import ClusterMsg, Clusters, Scan
 from schemas.scenario import Scenario
+from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
 from services.sensing.core import PointMemory, cluster_points
@@ -63,35 +61,33 @@ class SensingStage:
         # Reused while a scan adds no voxel (a still robot, a re-sent scan): the clusters cannot change.
         self._clusters: list[ClusterMsg] | None = None
         self._seq = 0
-        self._checkpoint: Path | None = None
+        self._state: bytes | None = None  # the memory as `state()` last saw it; None once it changed
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SensingStage:
         return cls(config=SensingConfig.from_scenario(scenario))
 
-    def recover(self, *, state_dir: Path) -> None:
-        """Reload the memory checkpointed in `state_dir` (if any); checkpoint it there from now on.
-
-        The file holds the remembered points least recently observed first; adding them back in that
+    def state(self) -> bytes:
+        """The remembered points least recently observed first, as `.npy` bytes: adding them back in that
         order rebuilds the same voxels (each point is its voxel's representative) in the same age order.
+
+        Taken when a scan adds to the memory, so a scan that only re-observes points changes nothing to save.
         """
-        self._checkpoint = state_dir / "points.npy"
-        data = read_checkpoint(self._checkpoint)
-        if data is None:
-            return
+        if self._state is None:
+            buffer = io.BytesIO()
+            np.save(buffer, self.memory.points(), allow_pickle=False)
+            self._state = buffer.getvalue()
+        return self._state
+
+    def restore(self, data: bytes) -> None:
         try:
             points = np.load(io.BytesIO(data), allow_pickle=False)
         except (ValueError, EOFError) as error:
-            raise CheckpointError(f"{self._checkpoint}: not a point checkpoint: {error}") from None
+            raise StateError(f"not a point checkpoint: {error}") from None
         if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
-            raise CheckpointError(f"{self._checkpoint}: expected finite (n, 2) points, got shape {points.shape}")
+            raise StateError(f"expected finite (n, 2) points, got shape {points.shape}")
         self.memory.add(points)
-
-    def _save(self) -> None:
-        if self._checkpoint is not None:
-            buffer = io.BytesIO()
-            np.save(buffer, self.memory.points(), allow_pickle=False)
-            write_atomic(self._checkpoint, buffer.getvalue())
+        self._state = None
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if not isinstance(message, Scan):
@@ -99,7 +95,7 @@ class SensingStage:
         if message.header.frame_id != "map":
             raise StageInputError(f"scan points must be in the map frame, got frame_id={message.header.frame_id!r}")
         if self.memory.add(self._checked_hits(message)) or self._clusters is None:
-            self._save()
+            self._state = None
             self._clusters = self._clustered()
         out = Clusters(
             header=answer_header(scan_header=message.header, seq=self._seq),

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cvxnav.geometry import FloatArray
 from schemas.scenario import Scenario
+from services.geometry import FloatArray
 from services.smoother.core import Smoothed, smooth
 from services.smoother.stage import SmootherConfig, SmootherStage
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import BSpline
 
-from cvxnav.geometry import Ellipse, EllipseStack, FloatArray, as_complex
+from services.geometry import Ellipse, EllipseStack, FloatArray, as_complex
 
 SAMPLES_PER_SPAN = 16
 

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.geometry import FloatArray, polyline_length, resample_polyline
-from cvxnav.runtime import Outputs, StageInputError
 from schemas.messages import RawPath, SmoothPath
 from schemas.scenario import Scenario
+from services.contract import Outputs, StageInputError
 from services.convert import answer_header, ellipses_from_msgs
+from services.geometry import FloatArray, polyline_length, resample_polyline
 from services.limits import MAX_PATH_POINTS, Reach, check_count
 from services.smoother.core import Smoothed, smooth
 

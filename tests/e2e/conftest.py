@@ -15,8 +15,8 @@ import pytest
 import zenoh
 
 from cvxnav.run import free_ports, stop_processes
-from cvxnav.zenoh_config import build_zenoh_config
-from sim.service import wait_for_stages
+from services.shell.sim import wait_for_stages
+from services.shell.zenoh_config import build_zenoh_config
 
 PREFIX = "cvxnav/robot1"
 ALL_STAGES = ("sensing", "ellipsoids", "planner", "smoother", "sim")

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from cvxnav.zenoh_config import build_zenoh_config
 from schemas.files import RunFile
 from schemas.messages import RobotState, decode
 from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key
+from services.shell.zenoh_config import build_zenoh_config
 from sim.vehicle import VehicleLimits
 
 PAPER = bundled_scenario()

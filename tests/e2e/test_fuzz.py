@@ -28,7 +28,6 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cvxnav.runtime import DEFAULT_MAX_PAYLOAD_BYTES
 from schemas.messages import (
     CircleMsg,
     ClusterMsg,
@@ -47,10 +46,8 @@ from schemas.messages import (
     decode,
 )
 from schemas.scenario import bundled_scenario
-from schemas.wiring import TOPICS, key, model_for, status_key, subscribers_of
-from services.limits import MAX_ELLIPSES, MAX_PATH_POINTS
-
-from schemas.wiring import default_prefix
+from schemas.wiring import TOPICS, default_prefix, key, model_for, status_key, subscribers_of
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES, MAX_ELLIPSES, MAX_PATH_POINTS
 
 pytestmark = pytest.mark.slow
 

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cvxnav.geometry import polyline_length
 from schemas.files import PlanFile
 from schemas.scenario import load_scenario
+from services.convert import ellipse_from_model
+from services.geometry import polyline_length
 from sim.controller import menger_curvature
 
 PUBLIC = [
@@ -63,7 +64,7 @@ def test_plan_is_safe_drivable_and_visits_goals_in_order(name, plans, scenarios_
         assert len(hits), f"goal {goal} missed"
         cursor += hits[0]
     assert set(plan.timings_ms.model_dump()) == {"cluster", "fit", "group", "optimize", "smooth", "total"}
-    assert all(e.to_ellipse().level(path).min() > 1.0 for e in plan.ellipsoids)
+    assert all(ellipse_from_model(e).level(path).min() > 1.0 for e in plan.ellipsoids)
 
 
 def test_path_length_against_the_reference(plans, scenarios_dir):

@@ -13,9 +13,9 @@ import zenoh
 
 from cvxnav.run import free_ports, stop_processes
 from cvxnav.status import alive_stages
-from cvxnav.zenoh_config import build_zenoh_config
 from schemas.files import RunFile
 from schemas.wiring import default_prefix
+from services.shell.zenoh_config import build_zenoh_config
 
 pytestmark = pytest.mark.slow
 PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")

@@ -17,9 +17,9 @@ import pytest
 
 from cvxnav.bench import planners
 from cvxnav.bench.problem import BenchProblem, check_path
-from cvxnav.geometry import polyline_length
 from cvxnav.plan import plan_on_model
 from schemas.scenario import Scenario, bundled_scenario
+from services.geometry import polyline_length
 
 PAPER = bundled_scenario()  # the paper's car and sensor
 

@@ -22,10 +22,11 @@ import pytest
 import zenoh
 from pydantic import BaseModel
 
-from cvxnav.runtime import StageInputError, run_stage
-from cvxnav.zenoh_config import build_zenoh_config
 from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, RobotState, Scan, StageStatus, decode
 from schemas.wiring import alive_key, key, status_key
+from services.contract import StageInputError
+from services.shell.stage import run_stage
+from services.shell.zenoh_config import build_zenoh_config
 
 WAIT_S = 5.0
 MAX_PAYLOAD_BYTES = 4096
@@ -354,8 +355,8 @@ def test_ticking_core_publishes_on_its_period():
 
 SERVICE_SCRIPT = """
 import sys, threading
-from cvxnav.runtime import install_signal_handlers, run_stage
-from cvxnav.zenoh_config import build_zenoh_config
+from services.shell.stage import install_signal_handlers, run_stage
+from services.shell.zenoh_config import build_zenoh_config
 
 class Idle:
     def process(self, *, topic, message, now_s):

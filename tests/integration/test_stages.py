@@ -18,8 +18,6 @@ import zenoh
 from pydantic import BaseModel
 
 from cvxnav.run import free_ports
-from cvxnav.runtime import run_stage
-from cvxnav.zenoh_config import build_zenoh_config
 from schemas.messages import (
     ClusterMsg,
     Clusters,
@@ -39,6 +37,8 @@ from schemas.wiring import STAGES, key, model_for, status_key
 from services.ellipsoids.stage import EllipsoidsStage
 from services.planner.stage import PlannerStage
 from services.sensing.stage import SensingStage
+from services.shell.stage import run_stage
+from services.shell.zenoh_config import build_zenoh_config
 from services.smoother.stage import SmootherStage
 
 WAIT_S = 10.0

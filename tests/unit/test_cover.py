@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from cvxnav.geometry import EllipseStack
 from services.ellipsoids.cover import (
     _boundary_samples,
     cover_points,
@@ -16,6 +15,7 @@ from services.ellipsoids.cover import (
     point_cover,
 )
 from services.ellipsoids.mvee import mvee, mvee_fast
+from services.geometry import EllipseStack
 
 BOX = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]])
 

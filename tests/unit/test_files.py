@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cvxnav.geometry import Ellipse
-from schemas.files import EllipseModel, LatencyStats, OutputFileError, PlanFile, PlanTimings, RunFile
+from schemas.files import LatencyStats, OutputFileError, PlanFile, PlanTimings, RunFile
+from services.convert import ellipse_from_model, ellipse_to_model
+from services.geometry import Ellipse
 
 
 def _plan() -> PlanFile:
@@ -19,7 +20,7 @@ def _plan() -> PlanFile:
         status="ok",
         path=[(0.0, 0.0), (0.03, 0.04), (0.1, 0.1)],
         raw_path=[(0.0, 0.0), (0.1, 0.1)],
-        ellipsoids=[EllipseModel.from_ellipse(ellipse)],
+        ellipsoids=[ellipse_to_model(ellipse)],
         timings_ms=PlanTimings(cluster=0.5, fit=1.25, group=0.1, optimize=12.0, smooth=3.0, total=16.85),
     )
 
@@ -50,7 +51,7 @@ def test_write_then_read_is_equal(tmp_path: Path, make) -> None:
 
 def test_ellipse_model_round_trips_the_geometry() -> None:
     ellipse = Ellipse.from_axes(center=(-2.0, 5.0), semi_axes=(3.0, 0.5), angle_rad=1.1)
-    back = EllipseModel.from_ellipse(ellipse).to_ellipse()
+    back = ellipse_from_model(ellipse_to_model(ellipse))
     np.testing.assert_allclose(back.A, ellipse.A)
     np.testing.assert_allclose(back.b, ellipse.b)
     np.testing.assert_allclose(back.center, [-2.0, 5.0])

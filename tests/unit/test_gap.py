@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from cvxnav.geometry import Ellipse
 from scipy.sparse.csgraph import connected_components
 
 from services.ellipsoids.gap import ellipse_gap, group_ellipses
+from services.geometry import Ellipse
 
 
 def test_gap_between_discs():

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
+from services.geometry import Ellipse, EllipseStack, keep_out_scales
 
 
 @settings(max_examples=80, deadline=None)

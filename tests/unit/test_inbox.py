@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 
-from cvxnav.runtime import Inbox
+from services.shell.stage import Inbox
 
 
 def test_a_ring_keeps_the_newest_samples_in_order():

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cvxnav.geometry import Ellipse, EllipseStack, polyline_length
+from services.geometry import Ellipse, EllipseStack, polyline_length
 from services.planner.core import intersected, plan_path
 from services.planner.refine import RefineSettings, resample_legs
 from services.planner.route import _Arcs, _cuts, _DeepCells, _Frames, _pair_tangents, tangent_route

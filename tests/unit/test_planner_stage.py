@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cvxnav.geometry import Ellipse, EllipseStack, keep_out_scales
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
 from services.convert import ellipse_to_msg, ellipses_from_msgs
+from services.geometry import Ellipse, EllipseStack, keep_out_scales
 from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap, trim_to_robot
 from services.smoother.core import smooth

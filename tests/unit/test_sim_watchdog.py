@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from shapely.geometry import LineString, Point
 
-from cvxnav.geometry import Ellipse
 from schemas.messages import Ellipsoids, Header, SmoothPath
 from schemas.scenario import Scenario, bundled_scenario
 from services.convert import ellipse_to_msg
+from services.geometry import Ellipse
+from sim.core import SimConfig, SimCore
 from sim.guard import PathGuard
-from sim.service import SimConfig, SimCore
 
 PAPER = bundled_scenario()
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cvxnav.geometry import Ellipse
+from services.geometry import Ellipse
 from services.smoother.core import bspline, sample, smooth, verify
 
 BOUNDS = dict(bounds_min=np.array([-10.0, -10.0]), bounds_max=np.array([30.0, 30.0]))

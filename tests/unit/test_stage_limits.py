@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cvxnav.runtime import StageInputError
 from schemas.messages import ClusterMsg, Clusters, EllipsoidMsg, Ellipsoids, Header, Pose2D, RawPath, RobotState, Scan
 from schemas.scenario import bundled_scenario
+from services.contract import StageInputError
 from services.ellipsoids.stage import EllipsoidsStage
 from services.limits import MAX_ELLIPSES, MAX_PATH_POINTS, MAX_SENSED_POINTS
 from services.planner.stage import PlannerStage
@@ -116,9 +116,9 @@ def test_planner_and_smoother_reject_absurd_ellipse_sets(ellipses, match):
 def test_planner_keeps_its_state_when_a_state_is_absurd(message, match):
     planner = PlannerStage.from_scenario(SCENARIO)
     planner.process(topic="state", message=state(), now_s=0.0)
-    held = planner.state
+    held = planner.robot_state
     one_line_rejection(planner, "state", message, match)
-    assert planner.state is held
+    assert planner.robot_state is held
 
 
 def test_smoother_rejects_oversized_and_off_map_paths():

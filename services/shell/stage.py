@@ -30,24 +30,24 @@ import time
 from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
-from typing import Protocol
+from pathlib import Path
 
 import zenoh
 from pydantic import BaseModel
 
 from schemas.messages import DecodeError, Header, M, StageStatus, decode
 from schemas.wiring import STAGES, StageSpec, alive_key, key, model_for, status_key
+from services.contract import Outputs, StageCore, StageInputError, Stateful, TickingCore
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
+from services.shell.checkpoint import Checkpoint
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20
 MAX_REASON_CHARS = 300
 # The longest a worker sleeps with no input: how long it may take to notice a stop.
 STOP_CHECK_S = 0.05
 # Samples held per input key: the newest decodable one among them is processed, older ones dropped.
 INPUT_RING = 8
-
-Outputs = list[tuple[str, BaseModel]]
 
 
 def one_line(text: str) -> str:
@@ -98,24 +98,6 @@ class Inbox:
         self._wake.clear()
 
 
-class StageInputError(ValueError):
-    """Raised by a core for an input it rejects (valid schema, unusable content); stage carries on."""
-
-
-class StageCore(Protocol):
-    def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
-        """Handle one input message; return the messages to publish, by topic name."""
-        ...
-
-
-class TickingCore(StageCore, Protocol):
-    """A core that also produces outputs on a timer (the sim publishing scans and state)."""
-
-    def tick(self, *, now_s: float) -> Outputs:
-        """Advance by one period; return the messages to publish, by topic name."""
-        ...
-
-
 def decode_sample(model: type[M], sample: zenoh.Sample, *, max_payload_bytes: int) -> M:
     """One received sample as `model`; a payload over `max_payload_bytes` is refused before decoding."""
     size = len(sample.payload)
@@ -150,8 +132,10 @@ class _Shell:
         status_publisher: zenoh.Publisher,
         max_payload_bytes: int,
         clock: Callable[[], float],
+        checkpoint: Checkpoint | None,
     ) -> None:
         self._spec = spec
+        self._checkpoint = checkpoint
         self._core = core
         self._publishers = publishers
         self._status_publisher = status_publisher
@@ -189,6 +173,8 @@ class _Shell:
         where = input_key or "tick"
         try:
             outputs = self._checked(step())
+            if self._checkpoint is not None:  # before the outputs that depend on the state
+                self._checkpoint.save(self._core)  # type: ignore[arg-type]  # run_stage's contract
         except (DecodeError, StageInputError) as error:
             self._report(input_key=input_key, started=started, reason=one_line(f"{where}: {error}"))
             return
@@ -264,13 +250,19 @@ def run_stage(
     clock: Callable[[], float] = time.monotonic,
     tick_period_s: float | None = None,
     ready_event: threading.Event | None = None,
+    state_dir: Path | None = None,
 ) -> None:
     """Run ``stage`` (a name in the wiring table) with ``core`` until ``stop_event`` is set.
 
     The session owns every declaration; all are undeclared, and the liveliness token withdrawn,
     before this returns. With ``tick_period_s``, ``core`` must be a ``TickingCore`` and its
     ``tick`` runs at that period between inputs. ``ready_event`` is set once the stage is declared.
+    With ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there.
     """
+    checkpoint = None
+    if state_dir is not None and isinstance(core, Stateful):
+        checkpoint = Checkpoint(state_dir=state_dir)
+        checkpoint.restore(core)
     spec = STAGES[stage]
     with zenoh.open(session_config) as session, ExitStack() as declarations:
         declare = declarations.enter_context
@@ -295,6 +287,7 @@ def run_stage(
             status_publisher=status_publisher,
             max_payload_bytes=max_payload_bytes,
             clock=clock,
+            checkpoint=checkpoint,
         )
         logger.info("stage %s running under %s", stage, prefix)
         freeze_startup_objects()
