@@ -10,7 +10,12 @@ from hypothesis import strategies as st
 from services.geometry import Ellipse, EllipseStack, polyline_length
 from services.planner.core import intersected, plan_path
 from services.planner.refine import RefineSettings, resample_legs
-from services.planner.route import _Arcs, _cuts, _DeepCells, _Frames, _pair_tangents, tangent_route
+from services.planner.route import tangent_route
+from services.planner.route.arcs import Arcs, cuts
+from services.planner.route.cells import DeepCells
+from services.planner.route.frames import Frames
+from services.planner.route.roots import trig_roots
+from services.planner.route.tangents import pair_tangents
 
 BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]))
 coord = st.floats(-5, 5, allow_nan=False)
@@ -80,6 +85,19 @@ def test_shortest_path_round_one_disc_matches_the_analytic_length():
     assert disc.level(plan.points).min() >= level - 1e-6
 
 
+def test_trig_roots_are_every_real_angle_of_each_polynomial():
+    # cos 2θ: π/4 + kπ/2; 1/2 + cos θ: 2π/3 and 4π/3; 2 + cos θ: none; cos 2θ − 0.999: two pairs of
+    # roots ±a/2 about 0 and π, each pair inside one grid step (the companion matrix finds them).
+    coef = np.array([[0.0, 0.0, 0.0, 1.0, 0.0], [0.5, 1.0, 0.0, 0.0, 0.0], [2.0, 1.0, 0.0, 0.0, 0.0],
+                     [-0.999, 0.0, 0.0, 1.0, 0.0]])
+    theta, real = trig_roots(coef)
+    half = 0.5 * np.arccos(0.999)
+    expected = [np.pi / 4 + np.pi / 2 * np.arange(4), [2 * np.pi / 3, 4 * np.pi / 3], [],
+                np.mod([half, -half, np.pi + half, np.pi - half], 2 * np.pi)]
+    for row, angles in enumerate(expected):
+        np.testing.assert_allclose(np.sort(theta[row][real[row]]), np.sort(angles), atol=1e-9)
+
+
 def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     rng = np.random.default_rng(3)
     ellipses = [
@@ -89,7 +107,7 @@ def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     ]
     stack = EllipseStack.of(ellipses)
     p, q = rng.uniform(-1, 21, (2000, 2)), rng.uniform(-1, 21, (2000, 2))
-    sure = _DeepCells(stack).blocked(p, q)
+    sure = DeepCells(stack).blocked(p, q)
     exact = stack.min_segment_levels(p, q) < 1.0 - 1e-9
     assert not np.any(sure & ~exact)
     assert np.sum(sure) > 0.8 * np.sum(exact)  # and it finds most of them
@@ -106,20 +124,20 @@ def test_tangent_windows_skipped_for_lack_of_free_arcs_hold_no_tangent_the_graph
         ellipses.append(Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=[major, major / rng.uniform(1.0, ratio)],
                                           angle_rad=rng.uniform(0, np.pi)))
     stack = EllipseStack.of(ellipses)
-    frames = _Frames.of(stack, np.full(len(stack), 1.01))
+    frames = Frames.of(stack, np.full(len(stack), 1.01))
     low, high = np.array([-1.0, -1.0]), np.array([21.0, 21.0])
     every = np.arange(len(stack))
-    arcs = _Arcs(frames, _cuts(frames, EllipseStack(A=frames.A, b=frames.b), low, high, every),
+    arcs = Arcs(frames, cuts(frames, EllipseStack(A=frames.A, b=frames.b), low, high, every),
                  np.ones(len(stack), dtype=bool), low, high)
 
-    class EveryWindow(_Arcs):
+    class EveryWindow(Arcs):
         def meets_free(self, owner, lo, hi):
             return np.ones(len(owner), dtype=bool)
 
     solve_all = object.__new__(EveryWindow)
     solve_all.__dict__.update(arcs.__dict__)
     i, j = np.triu_indices(len(stack), k=1)
-    skipped, full = _pair_tangents(frames, arcs, i, j), _pair_tangents(frames, solve_all, i, j)
+    skipped, full = pair_tangents(frames, arcs, i, j), pair_tangents(frames, solve_all, i, j)
     assert len(full.p) > 100
     for got, expected in zip((skipped.p, skipped.q, skipped.owner_p, skipped.owner_q), (full.p, full.q, full.owner_p, full.owner_q)):
         assert np.array_equal(got, expected)
