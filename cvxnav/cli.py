@@ -61,7 +61,8 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _cmd_service(args: argparse.Namespace) -> int:
-    from cvxnav.run import RunError, serve
+    from cvxnav.service import serve
+    from cvxnav.stages import RunError
     from schemas.wiring import default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
     from services.shell.zenoh_config import zenoh_config_from_args
@@ -83,7 +84,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     import time
 
-    from cvxnav.run import PipelineError, RunError, RunOptions, load_stages, prepare_tls, run_pipeline, summary
+    from cvxnav.stages import RunError, load_stages
+    from cvxnav.supervisor import PipelineError, RunOptions, prepare_tls, run_pipeline, summary
 
     scenario = _load(args.scenario)
     try:
@@ -124,7 +126,7 @@ def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from cvxnav.record import RecordingError, read_recording
     from cvxnav.replay import replay_stage
-    from cvxnav.run import RunError, load_factory
+    from cvxnav.stages import RunError, load_factory
 
     try:
         recording = read_recording(args.file)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cvxnav.record import Recorded, Recording
-from cvxnav.run import DEFAULT_FACTORIES, load_factory
+from cvxnav.stages import DEFAULT_FACTORIES, load_factory
 from schemas.messages import DecodeError, Message, StageStatus, decode
 from schemas.wiring import STAGES, key, model_for, status_key
 from services.contract import StageCore, StageInputError

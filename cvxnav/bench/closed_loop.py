@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.run import DEFAULT_FACTORIES, PIPELINE, load_factory
+from cvxnav.stages import DEFAULT_FACTORIES, PIPELINE, load_factory
 from schemas.messages import Ellipsoids, SmoothPath
 from schemas.scenario import Scenario
 from services.contract import StageInputError

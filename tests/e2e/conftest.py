@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from cvxnav.run import free_ports, stop_processes
+from cvxnav.supervisor import free_ports, stop_processes
 from services.shell.sim import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cvxnav.run import free_ports, stop_processes
+from cvxnav.supervisor import free_ports, stop_processes
 from schemas.files import RunFile
 
 pytestmark = pytest.mark.slow

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from cvxnav.run import stop_processes
+from cvxnav.supervisor import stop_processes
 from schemas.files import RunFile
 
 pytestmark = pytest.mark.slow

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from cvxnav.run import free_ports, stop_processes
 from cvxnav.status import alive_stages
+from cvxnav.supervisor import free_ports, stop_processes
 from schemas.files import RunFile
 from schemas.wiring import default_prefix
 from services.shell.zenoh_config import build_zenoh_config

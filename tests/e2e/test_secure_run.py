@@ -15,13 +15,13 @@ import time
 
 import pytest
 import zenoh
+from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 from cvxnav.certs import client_config, pipeline_names, write_deployment
-from cvxnav.run import free_ports, stop_processes
+from cvxnav.supervisor import free_ports, stop_processes
 from schemas.files import RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, decode
 from schemas.wiring import default_prefix, key
-from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 pytestmark = pytest.mark.slow
 PREFIX = default_prefix()

@@ -17,7 +17,7 @@ import pytest
 import zenoh
 from pydantic import BaseModel
 
-from cvxnav.run import free_ports
+from cvxnav.supervisor import free_ports
 from schemas.messages import (
     ClusterMsg,
     Clusters,

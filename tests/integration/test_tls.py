@@ -16,12 +16,12 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 from cvxnav.certs import client_config, pipeline_names, router_config, write_deployment
-from cvxnav.run import free_ports
+from cvxnav.supervisor import free_ports
 from schemas.messages import Clusters, Header, Pose2D, Scan, decode
 from schemas.wiring import default_prefix, key
-from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0

@@ -1,6 +1,6 @@
-"""`cvxnav run` and `cvxnav service`: every stage its own OS process, peered over Zenoh on loopback.
+"""The supervisor of `cvxnav run`: every stage its own OS process, peered over Zenoh on loopback.
 
-`run` supervises: it picks free loopback ports, starts each pipeline stage as
+It it picks free loopback ports, starts each pipeline stage as
 `python -m cvxnav service NAME --config FILE` (or the external command a `stages` config names), every
 process listening on its own port and connecting to all the others' with multicast scouting off (a
 full mesh on 127.0.0.1: no router, no stray sessions from the LAN), waits until every stage's
@@ -44,7 +44,6 @@ reached; otherwise it is kept and its path logged.
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import shutil
@@ -53,143 +52,27 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import zenoh
 
 from cvxnav.certs import client_config, missing_files, pipeline_names, router_config, write_deployment
 from cvxnav.exits import EXIT_BY_STATUS
 from cvxnav.record import MessageRecorder
+from cvxnav.stages import DEFAULT_FACTORIES, PIPELINE, RunError, StageChoice, load_stages
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
-from schemas.wiring import STAGES, default_prefix, key
-from services.contract import StageCore
-from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
-from services.shell.stage import install_signal_handlers, run_stage
+from schemas.wiring import default_prefix, key
 from services.shell.zenoh_config import config_from_doc, endpoints_config
 
 logger = logging.getLogger(__name__)
 
-PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")  # started first; then the sim
-DEFAULT_FACTORIES: Mapping[str, str] = {
-    "sensing": "services.sensing.stage:SensingStage.from_scenario",
-    "ellipsoids": "services.ellipsoids.stage:EllipsoidsStage.from_scenario",
-    "planner": "services.planner.stage:PlannerStage.from_scenario",
-    "smoother": "services.smoother.stage:SmootherStage.from_scenario",
-}
-
-
-class RunError(Exception):
-    """Bad input to `run`/`service` (a stages file, an entry point): one line, exit code 2."""
-
 
 class PipelineError(Exception):
     """The pipeline itself failed (a stage died or never came up): one line, exit code 4."""
-
-
-# --------------------------------------------------------------------------- stage selection
-
-
-def load_factory(entry_point: str) -> Callable[[Scenario], StageCore]:
-    """`module:attr[.attr]` → the callable it names (a factory taking the scenario)."""
-    module_name, sep, attr_path = entry_point.partition(":")
-    if not sep or not module_name or not attr_path:
-        raise RunError(f"entry point {entry_point!r} must look like 'package.module:factory'")
-    try:
-        target: Any = importlib.import_module(module_name)
-    except ImportError as error:
-        raise RunError(f"entry point {entry_point!r}: cannot import {module_name}: {error}") from None
-    for attr in attr_path.split("."):
-        if not hasattr(target, attr):
-            raise RunError(f"entry point {entry_point!r}: {module_name} has no {attr_path}")
-        target = getattr(target, attr)
-    if not callable(target):
-        raise RunError(f"entry point {entry_point!r} is not callable")
-    return target
-
-
-@dataclass(frozen=True)
-class StageChoice:
-    """How one pipeline stage runs: a Python entry point in `cvxnav service`, or an external command."""
-
-    entry_point: str | None = None
-    command: tuple[str, ...] | None = None
-
-
-def load_stages(path: Path | None) -> dict[str, StageChoice]:
-    """The stages config (JSON: name → "module:factory" or {"command": [...]}) over the defaults."""
-    choices = {name: StageChoice(entry_point=entry) for name, entry in DEFAULT_FACTORIES.items()}
-    if path is None:
-        return choices
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as error:
-        raise RunError(f"{path}: cannot read: {error.strerror}") from None
-    except json.JSONDecodeError as error:
-        raise RunError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
-    stages = doc.get("stages", doc) if isinstance(doc, dict) else None
-    if not isinstance(stages, dict):
-        raise RunError(f"{path}: expected an object mapping stage names to entry points")
-    for name, spec in stages.items():
-        if name not in PIPELINE:
-            raise RunError(f"{path}: stages.{name}: unknown stage; swappable: {', '.join(PIPELINE)}")
-        if isinstance(spec, str):
-            load_factory(spec)  # fail now, in one line, rather than in a child process
-            choices[name] = StageChoice(entry_point=spec)
-        elif (isinstance(spec, dict) and set(spec) == {"command"} and isinstance(spec["command"], list)
-              and spec["command"] and all(isinstance(a, str) for a in spec["command"])):
-            choices[name] = StageChoice(command=tuple(spec["command"]))
-        else:
-            raise RunError(f"{path}: stages.{name}: expected 'module:factory' or {{\"command\": [...]}}")
-    return choices
-
-
-# --------------------------------------------------------------------------- one stage as a process
-
-
-def serve(
-    *,
-    name: str,
-    scenario: Scenario,
-    session_config: zenoh.Config,
-    prefix: str,
-    entry_point: str | None = None,
-    sim_options: Mapping[str, Any] | None = None,
-    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
-    state_dir: Path | None = None,
-) -> int:
-    """Run stage `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
-
-    An input payload larger than `max_payload_bytes` is rejected before it is decoded. With
-    `state_dir`, a `Stateful` core's state is saved there and restored from there.
-    """
-    stop = threading.Event()
-    install_signal_handlers(stop)
-    if name == "sim":
-        from services.shell.sim import run_sim
-        from sim.core import SimConfig
-
-        options = dict(sim_options or {})
-        out_path = options.pop("out_path", None)
-        result = run_sim(scenario=scenario, config=SimConfig(**options, max_payload_bytes=max_payload_bytes),
-                         session_config=session_config,
-                         prefix=prefix, stop_event=stop, out_path=out_path)
-        return EXIT_BY_STATUS[result.status]
-    if name not in STAGES:
-        raise RunError(f"unknown stage {name!r}; known: {', '.join(STAGES)}")
-    core = load_factory(entry_point or DEFAULT_FACTORIES[name])(scenario)
-    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
-              max_payload_bytes=max_payload_bytes, state_dir=state_dir)
-    return 0
-
-
-# --------------------------------------------------------------------------- the supervisor
 
 
 def free_ports(count: int) -> list[int]:
