@@ -26,7 +26,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from schemas.wiring import MONITOR, STAGES
+from schemas.wiring import PROCESSES
 
 ROUTER = "router"
 OPERATOR = "operator"  # the name `cvxnav status` connects with
@@ -40,7 +40,7 @@ ACL_MESSAGES = (
 
 def pipeline_names() -> tuple[str, ...]:
     """Who may speak under the prefix: every stage of the wiring table, the monitor, the operator."""
-    return (*STAGES, MONITOR.name, OPERATOR)
+    return (*PROCESSES, OPERATOR)
 
 
 @dataclass(frozen=True)

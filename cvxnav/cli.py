@@ -40,44 +40,26 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_monitor(args: argparse.Namespace) -> int:
-    import threading
-
-    from schemas.wiring import default_prefix
-    from services.monitor.rerun import ViewerError, monitor_targets
-    from services.shell.monitor import run_monitor
-    from services.shell.stage import install_signal_handlers
-    from services.shell.zenoh_config import zenoh_config_from_args
-
-    stop = threading.Event()
-    install_signal_handlers(stop)
-    targets = monitor_targets(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url)
-    try:
-        run_monitor(session_config=zenoh_config_from_args(args),
-                    prefix=args.prefix or default_prefix(robot_id=args.robot_id), targets=targets, stop_event=stop)
-    except ViewerError as error:
-        raise CliError(str(error)) from None
-    return EXIT_OK
-
-
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.service import serve
     from cvxnav.stages import RunError
-    from schemas.wiring import default_prefix
+    from schemas.wiring import MONITOR, SIM, default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
+    from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args
 
-    if args.name == "monitor":
-        return _cmd_monitor(args)
     scenario = _load(args.scenario)
-    sim_options = dict(out_path=args.out, realtime=args.realtime, time_limit_s=args.time_limit_s,
-                       noise_std_m=args.noise_std_m, seed=args.seed)
+    options = {
+        SIM.name: dict(realtime=args.realtime, time_limit_s=args.time_limit_s, noise_std_m=args.noise_std_m,
+                       seed=args.seed),
+        MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
+    }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
-                     sim_options=sim_options, state_dir=args.state_dir,
+                     options=options, out_path=args.out, state_dir=args.state_dir,
                      max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
-    except RunError as error:
+    except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
 
 
@@ -250,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--out", type=Path, default=Path("plan.json"), help="plan file to write")
     plan.set_defaults(handler=_cmd_plan)
 
-    from schemas.wiring import STAGES
+    from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES
     from services.shell.zenoh_config import add_zenoh_arguments
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
@@ -261,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="sim-time limit in seconds (default: from the scenario's tour length)")
     run.add_argument("--stages", type=Path, default=None,
                      help='JSON file swapping stages: {"smoother": "module:factory" | {"command": [...]}}')
-    run.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    run.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -286,9 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")
-    service.add_argument("name", choices=[*STAGES, "monitor"], help="the stage to run (monitor: the rerun sink)")
+    service.add_argument("name", choices=list(PROCESSES), help="the stage to run (monitor: the rerun sink)")
     service.add_argument("--scenario", type=Path, default=None, help="scenario file (default: the paper's)")
-    service.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    service.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
     service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
     service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                          help="an alternative implementation: a factory taking the scenario")
@@ -311,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     service.set_defaults(handler=_cmd_service)
 
     status = commands.add_parser("status", help="which stages are alive, their last status, message rates")
-    status.add_argument("--robot-id", default="robot1", help="key prefix is cvxnav/<robot-id>")
+    status.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
     status.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
     status.add_argument("--window-s", type=_positive_float, default=2.0, help="how long to measure rates")
     status.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -341,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     replay = commands.add_parser("replay", help="re-run one stage on a message recording; compare its outputs")
     replay.add_argument("file", type=Path, help="an MCAP file from `cvxnav run --record-messages`")
-    replay.add_argument("--stage", required=True, choices=[name for name in STAGES if name != "sim"],
+    replay.add_argument("--stage", required=True, choices=list(PIPELINE),
                         help="the stage whose recorded inputs are replayed")
     replay.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                         help="an alternative implementation: a factory taking the scenario")

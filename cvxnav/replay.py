@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cvxnav.record import Recorded, Recording
-from cvxnav.stages import DEFAULT_FACTORIES, load_factory
+from cvxnav.stages import load_factory
 from schemas.messages import DecodeError, Message, StageStatus, decode
 from schemas.wiring import STAGES, key, model_for, status_key
 from services.contract import StageCore, StageInputError
@@ -67,7 +67,7 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
                  rtol: float = RTOL, atol: float = ATOL) -> ReplayReport:
     """Feed the stage's recorded inputs to a fresh core; compare its outputs with the recorded ones."""
     spec = STAGES[stage]
-    core: StageCore = load_factory(entry_point or DEFAULT_FACTORIES[stage])(recording.scenario)
+    core: StageCore = load_factory(entry_point or spec.factory)(recording.scenario)
     inputs = {key(recording.prefix, topic): topic for topic in spec.subscribes}
     outputs = {key(recording.prefix, topic): topic for topic in spec.publishes}
     report = ReplayReport(stage=stage)

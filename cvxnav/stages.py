@@ -1,4 +1,4 @@
-"""Which implementation runs each pipeline stage: the default cores, or a swap named in a `stages` file.
+"""Which implementation runs each pipeline stage: the wiring table's factory, or a swap named in a `stages` file.
 
 A stage is swapped by naming, in a JSON `stages` file, either a Python entry point `"module:factory"`
 (called with the scenario, returning a StageCore), or `{"command": ["prog", "arg", ...]}`: any process
@@ -9,29 +9,21 @@ from __future__ import annotations
 
 import importlib
 import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from schemas.scenario import Scenario
+from schemas.wiring import PIPELINE, STAGES
 from services.contract import StageCore
-
-PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")  # started first; then the sim
-DEFAULT_FACTORIES: Mapping[str, str] = {
-    "sensing": "services.sensing.stage:SensingStage.from_scenario",
-    "ellipsoids": "services.ellipsoids.stage:EllipsoidsStage.from_scenario",
-    "planner": "services.planner.stage:PlannerStage.from_scenario",
-    "smoother": "services.smoother.stage:SmootherStage.from_scenario",
-}
 
 
 class RunError(Exception):
     """Bad input to `run`/`service` (a stages file, an entry point): one line, exit code 2."""
 
 
-def load_factory(entry_point: str) -> Callable[[Scenario], StageCore]:
-    """`module:attr[.attr]` → the callable it names (a factory taking the scenario)."""
+def load_factory(entry_point: str) -> Callable[..., StageCore]:
+    """`module:attr[.attr]` → the callable it names (a factory taking the scenario, and options)."""
     module_name, sep, attr_path = entry_point.partition(":")
     if not sep or not module_name or not attr_path:
         raise RunError(f"entry point {entry_point!r} must look like 'package.module:factory'")
@@ -58,7 +50,7 @@ class StageChoice:
 
 def load_stages(path: Path | None) -> dict[str, StageChoice]:
     """The stages config (JSON: name → "module:factory" or {"command": [...]}) over the defaults."""
-    choices = {name: StageChoice(entry_point=entry) for name, entry in DEFAULT_FACTORIES.items()}
+    choices = {name: StageChoice(entry_point=STAGES[name].factory) for name in PIPELINE}
     if path is None:
         return choices
     try:

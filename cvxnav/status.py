@@ -1,7 +1,7 @@
 """`cvxnav status` and `cvxnav router`: what is running under a prefix, and the Zenoh router stages meet at.
 
-Status asks the liveliness tokens (``<prefix>/alive/*``: which stages are up), then listens to every
-key under the prefix for a short window: message rate per key, each stage's last ``StageStatus``, and
+Status asks the liveliness tokens (which processes are up), then listens to every key under the
+prefix for a short window: message rate per key, each stage's last ``StageStatus``, and
 the scan → smoothed-path latency as seen from here (scan and path matched by ``scan_seq``).
 """
 
@@ -17,7 +17,8 @@ import numpy as np
 import zenoh
 
 from schemas.messages import DecodeError, Scan, SmoothPath, StageStatus, decode
-from schemas.wiring import MONITOR, STAGES, TOPICS, topic_of
+from schemas.wiring import PROCESSES, TOPICS, every_key, stage_of_status_key, topic_of
+from services.shell.peers import alive_stages
 
 
 @dataclass
@@ -57,15 +58,6 @@ class PipelineReport:
         return "\n".join(lines)
 
 
-def alive_stages(session: zenoh.Session, *, prefix: str, timeout_s: float = 2.0) -> set[str]:
-    """Names of the stages whose liveliness token is up now."""
-    names = set()
-    for reply in session.liveliness().get(f"{prefix}/alive/*", timeout=timeout_s):
-        if reply.ok is not None:
-            names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-    return names
-
-
 def observe(session: zenoh.Session, *, prefix: str, window_s: float) -> PipelineReport:
     """Liveliness now, then rates, statuses and latency over ``window_s`` seconds of traffic."""
     counts: dict[str, int] = defaultdict(int)
@@ -73,7 +65,6 @@ def observe(session: zenoh.Session, *, prefix: str, window_s: float) -> Pipeline
     scans_seen: dict[int, float] = {}
     latencies_ms: list[float] = []
     lock = threading.Lock()
-    status_head = f"{prefix}/status/"
 
     def on_sample(sample: zenoh.Sample) -> None:
         key_expr, now = str(sample.key_expr), time.monotonic()
@@ -90,24 +81,24 @@ def observe(session: zenoh.Session, *, prefix: str, window_s: float) -> Pipeline
                             latencies_ms.append((now - sent) * 1e3)
                 except DecodeError:
                     pass
-            elif key_expr.startswith(status_head):
+            elif (stage := stage_of_status_key(prefix, key_expr)) is not None:
                 try:
-                    statuses[key_expr[len(status_head):]] = decode(StageStatus, sample.payload.to_bytes())
+                    statuses[stage] = decode(StageStatus, sample.payload.to_bytes())
                 except DecodeError:
                     pass
 
-    subscriber = session.declare_subscriber(f"{prefix}/**", on_sample)
+    subscriber = session.declare_subscriber(every_key(prefix), on_sample)
     try:
         alive = alive_stages(session, prefix=prefix)
         time.sleep(window_s)
     finally:
         subscriber.undeclare()
     with lock:
-        names = [*STAGES, MONITOR.name] + sorted((alive | set(statuses)) - {*STAGES, MONITOR.name})
+        names = [*PROCESSES] + sorted((alive | set(statuses)) - set(PROCESSES))
         stages = []
         for name in names:
             status = statuses.get(name)
-            publishes = STAGES[name].publishes if name in STAGES else ()
+            publishes = PROCESSES[name].publishes if name in PROCESSES else ()
             stages.append(StageReport(
                 name=name, alive=name in alive, state=status.state if status else None,
                 reason=status.reason if status else "", processing_ms=status.processing_ms if status else None,

@@ -61,11 +61,12 @@ import zenoh
 from cvxnav.certs import client_config, missing_files, pipeline_names, router_config, write_deployment
 from cvxnav.exits import EXIT_BY_STATUS
 from cvxnav.record import MessageRecorder
-from cvxnav.stages import DEFAULT_FACTORIES, PIPELINE, RunError, StageChoice, load_stages
+from cvxnav.stages import RunError, StageChoice, load_stages
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
-from schemas.wiring import default_prefix, key
+from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, SIM, STAGES, default_prefix, key
+from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import config_from_doc, endpoints_config
 
 logger = logging.getLogger(__name__)
@@ -108,7 +109,7 @@ class RunOptions:
     realtime: bool = False
     time_limit_s: float | None = None  # sim time
     stages: dict[str, StageChoice] = field(default_factory=lambda: load_stages(None))
-    robot_id: str = "robot1"
+    robot_id: str = DEFAULT_ROBOT_ID
     noise_std_m: float = 0.0
     seed: int = 0
     startup_timeout_s: float = 60.0
@@ -129,7 +130,7 @@ class RunOptions:
     @property
     def process_names(self) -> list[str]:
         """Every process the run starts, in start order."""
-        return list(PIPELINE) + (["monitor"] if self.monitor_args is not None else []) + ["sim"]
+        return [*PIPELINE, *([MONITOR.name] if self.monitor_args is not None else []), SIM.name]
 
 
 @dataclass(frozen=True)
@@ -231,11 +232,11 @@ class Supervisor:
             cmd += ["--scenario", scenario_arg]
         if name in PIPELINE:
             cmd += ["--state-dir", state_dir]
-        if choice is not None and choice.entry_point is not None and choice.entry_point != DEFAULT_FACTORIES[name]:
+        if choice is not None and choice.entry_point is not None and choice.entry_point != STAGES[name].factory:
             cmd += ["--entry", choice.entry_point]
-        if name == "monitor":
+        if name == MONITOR.name:
             cmd += self._monitor_args()
-        if name == "sim":
+        if name == SIM.name:
             cmd += ["--out", str(self.options.out_path), "--seed", str(self.options.seed),
                     "--noise-std-m", repr(self.options.noise_std_m)]
             if self.options.realtime:
@@ -247,7 +248,7 @@ class Supervisor:
     def _monitor_args(self) -> list[str]:
         """The monitor's options; a restarted monitor records to run.1.rrd, run.2.rrd, … (no overwrite)."""
         args = list(self.options.monitor_args or ())
-        count = self.restart_count("monitor")
+        count = self.restart_count(MONITOR.name)
         if count and "--record" in args:
             where = args.index("--record") + 1
             record = Path(args[where])
@@ -276,7 +277,7 @@ class Supervisor:
         """
         now = time.monotonic()
         for name, child in list(self.children.items()):
-            if name == "sim" or child.process.poll() is None:
+            if name == SIM.name or child.process.poll() is None:
                 continue
             due = self._restart_due.get(name)
             if due is None:
@@ -328,8 +329,6 @@ def stop_processes(processes: list[subprocess.Popen], *, grace_s: float) -> list
 
 
 def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: float) -> None:
-    from services.shell.sim import wait_for_stages
-
     deadline = time.monotonic() + timeout_s
     missing = set(supervisor.children)  # the pipeline, and the monitor if asked
     while missing and time.monotonic() < deadline:
@@ -371,9 +370,9 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
             for name in PIPELINE:
                 supervisor.start(name)
             if options.monitor_args is not None:
-                supervisor.start("monitor")  # before the sim, so it sees the world and the first scan
+                supervisor.start(MONITOR.name)  # before the sim, so it sees the world and the first scan
             _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s)
-            sim = supervisor.start("sim")
+            sim = supervisor.start(SIM.name)
             wall_limit_s = time_limit_s * (1.5 if options.realtime else 1.0) + options.startup_timeout_s
             code = _follow(sim=sim, supervisor=supervisor, progress=progress, time_limit_s=time_limit_s,
                            wall_limit_s=wall_limit_s, goals=len(scenario.goals), show=options.show_progress)

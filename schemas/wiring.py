@@ -1,7 +1,8 @@
-"""The pipeline's one wiring table: which stage publishes which key carrying which model.
+"""The pipeline's one wiring table: per process, what it reads and writes and the factory of its core.
 
-Keys are relative to a prefix (default ``cvxnav/robot1``, CONTRACTS.md §5). Services, compose.yaml
-and the monitor read this table; no stage names a key of its own.
+Keys are relative to a prefix (default ``cvxnav/robot1``, CONTRACTS.md §5) and built and parsed only
+by the helpers below. `cvxnav run`, `cvxnav service`, compose.yaml, the monitor, `cvxnav status` and
+the closed-loop bench read this table; no core names a key of its own.
 
     sim        --scan, state-->   sensing (scan), planner (state)
     sensing    --clusters-->      ellipsoids
@@ -11,81 +12,106 @@ and the monitor read this table; no stage names a key of its own.
     ellipsoids --ellipsoids-->    sim (which checks every path against them before driving on it)
     sim        --world-->         monitor only (the true map; no planning stage may read it)
 
-The monitor (``MONITOR``) is a sink outside ``STAGES``: it reads every topic and every status, and
-the pipeline never waits for it.
+Three roles, one shell (``services.shell``): a ``stage`` works on the newest input of each key and
+reports a status after every input; the ``source`` (the sim) ticks, follows the pipeline stages'
+liveliness and every stage's status, and ends the run; the ``sink`` (the monitor) reads every topic
+and every status, and the pipeline never waits for it. Sources and sinks handle every input in
+arrival order and report only the inputs they reject.
+
+A factory is an entry point ``"module:attr[.attr]"`` (a string, so the table imports nothing it
+wires): called with the scenario (and the process's options, for the sim and the monitor), it
+returns the core.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Mapping
+from typing import Literal, Mapping
 
-from schemas.messages import (
-    Clusters,
-    Ellipsoids,
-    Message,
-    RawPath,
-    RobotState,
-    Scan,
-    SmoothPath,
-    StageStatus,
-    World,
-)
+from schemas.messages import Clusters, Ellipsoids, Message, RawPath, RobotState, Scan, SmoothPath, World
 
 DEFAULT_ROBOT_ID = "robot1"
+
+Role = Literal["stage", "source", "sink"]
 
 
 @dataclass(frozen=True)
 class Topic:
-    """One key of the pipeline: its name relative to the prefix, its model and its one publisher."""
+    """One key of the pipeline: its name relative to the prefix and its model.
+
+    ``latched``: the publisher answers gets with the last message (a late subscriber still has the
+    world). ``block``: the publisher waits rather than drop a message when the network is congested.
+    """
 
     name: str
     model: type[Message]
-    publisher: str
+    latched: bool = False
+    block: bool = False
 
 
 @dataclass(frozen=True)
 class StageSpec:
-    """What one stage reads and writes (topic names, in the order the stage handles them)."""
+    """One process of the pipeline: what it reads and writes (topic names, in the order it handles
+    them), whose liveliness and statuses it follows, and the factory of its core."""
 
     name: str
+    factory: str
     subscribes: tuple[str, ...]
-    publishes: tuple[str, ...]
+    publishes: tuple[str, ...] = ()
+    role: Role = "stage"
+    watches: tuple[str, ...] = ()  # processes whose liveliness the core is told of
+    hears_statuses: bool = False  # the core is handed every process's StageStatus
+
+    @property
+    def every_input(self) -> bool:
+        """Every input in arrival order (source, sink), rather than the newest of each key (stage)."""
+        return self.role != "stage"
+
+    @property
+    def reports_ok(self) -> bool:
+        """A status after every input (a stage); a source or sink reports only what it rejects."""
+        return self.role == "stage"
 
 
 TOPICS: Mapping[str, Topic] = MappingProxyType(
     {
         topic.name: topic
         for topic in (
-            Topic(name="scan", model=Scan, publisher="sim"),
-            Topic(name="state", model=RobotState, publisher="sim"),
-            Topic(name="clusters", model=Clusters, publisher="sensing"),
-            Topic(name="ellipsoids", model=Ellipsoids, publisher="ellipsoids"),
-            Topic(name="raw_path", model=RawPath, publisher="planner"),
-            Topic(name="smooth_path", model=SmoothPath, publisher="smoother"),
-            Topic(name="world", model=World, publisher="sim"),
+            Topic(name="scan", model=Scan, block=True),
+            Topic(name="state", model=RobotState, block=True),
+            Topic(name="clusters", model=Clusters),
+            Topic(name="ellipsoids", model=Ellipsoids),
+            Topic(name="raw_path", model=RawPath),
+            Topic(name="smooth_path", model=SmoothPath),
+            Topic(name="world", model=World, latched=True),
         )
     }
 )
 
-STAGES: Mapping[str, StageSpec] = MappingProxyType(
-    {
-        spec.name: spec
-        for spec in (
-            StageSpec(name="sim", subscribes=("smooth_path", "ellipsoids"), publishes=("scan", "state", "world")),
-            StageSpec(name="sensing", subscribes=("scan",), publishes=("clusters",)),
-            StageSpec(name="ellipsoids", subscribes=("clusters",), publishes=("ellipsoids",)),
-            StageSpec(name="planner", subscribes=("ellipsoids", "state"), publishes=("raw_path",)),
-            StageSpec(name="smoother", subscribes=("raw_path",), publishes=("smooth_path",)),
-        )
-    }
+_PIPELINE = (
+    StageSpec(name="sensing", factory="services.sensing.stage:SensingStage.from_scenario",
+              subscribes=("scan",), publishes=("clusters",)),
+    StageSpec(name="ellipsoids", factory="services.ellipsoids.stage:EllipsoidsStage.from_scenario",
+              subscribes=("clusters",), publishes=("ellipsoids",)),
+    StageSpec(name="planner", factory="services.planner.stage:PlannerStage.from_scenario",
+              subscribes=("ellipsoids", "state"), publishes=("raw_path",)),
+    StageSpec(name="smoother", factory="services.smoother.stage:SmootherStage.from_scenario",
+              subscribes=("raw_path",), publishes=("smooth_path",)),
 )
+PIPELINE: tuple[str, ...] = tuple(spec.name for spec in _PIPELINE)  # started first, in this order; then the sim
 
-STATUS_MODEL: type[Message] = StageStatus
+SIM = StageSpec(name="sim", factory="sim.stage:SimStage.from_scenario", subscribes=("smooth_path", "ellipsoids"),
+                publishes=("scan", "state", "world"), role="source", watches=PIPELINE, hears_statuses=True)
 
 # The observer: subscribes to every topic (and every status), publishes nothing.
-MONITOR = StageSpec(name="monitor", subscribes=tuple(TOPICS), publishes=())
+MONITOR = StageSpec(name="monitor", factory="services.monitor.rerun:MonitorCore.from_scenario",
+                    subscribes=tuple(TOPICS), role="sink", hears_statuses=True)
+
+# The sim and the pipeline stages: every process but the observer.
+STAGES: Mapping[str, StageSpec] = MappingProxyType({spec.name: spec for spec in (SIM, *_PIPELINE)})
+# Every process the table wires, the monitor last.
+PROCESSES: Mapping[str, StageSpec] = MappingProxyType({**STAGES, MONITOR.name: MONITOR})
 
 
 def default_prefix(*, robot_id: str = DEFAULT_ROBOT_ID) -> str:
@@ -99,14 +125,36 @@ def key(prefix: str, topic: str) -> str:
     return f"{prefix}/{topic}"
 
 
-def status_key(prefix: str, stage: str) -> str:
-    """Where ``stage`` publishes its ``StageStatus`` after every input."""
+def every_key(prefix: str) -> str:
+    """The key expression of everything under ``prefix`` (topics, statuses)."""
+    return f"{prefix}/**"
+
+
+def status_key(prefix: str, stage: str = "*") -> str:
+    """Where ``stage`` publishes its ``StageStatus`` after every input (``*``: every stage's)."""
     return f"{prefix}/status/{stage}"
 
 
-def alive_key(prefix: str, stage: str) -> str:
-    """The liveliness token ``stage`` holds while it runs."""
+def alive_key(prefix: str, stage: str = "*") -> str:
+    """The liveliness token ``stage`` holds while it runs (``*``: every stage's)."""
     return f"{prefix}/alive/{stage}"
+
+
+def _last_part(prefix: str, head: str, key_expr: str) -> str | None:
+    start = f"{prefix}/{head}/"
+    if not key_expr.startswith(start) or "/" in key_expr[len(start):]:
+        return None
+    return key_expr[len(start):] or None
+
+
+def stage_of_status_key(prefix: str, key_expr: str) -> str | None:
+    """The stage a status key under ``prefix`` belongs to (None for any other key)."""
+    return _last_part(prefix, "status", key_expr)
+
+
+def stage_of_alive_key(prefix: str, key_expr: str) -> str | None:
+    """The stage a liveliness token under ``prefix`` belongs to (None for any other key)."""
+    return _last_part(prefix, "alive", key_expr)
 
 
 def topic_of(prefix: str, key_expr: str) -> str | None:
@@ -122,5 +170,12 @@ def model_for(topic: str) -> type[Message]:
     return TOPICS[topic].model
 
 
+def publisher_of(topic: str) -> str:
+    """The one process that publishes ``topic``."""
+    (name,) = (spec.name for spec in PROCESSES.values() if topic in spec.publishes)
+    return name
+
+
 def subscribers_of(topic: str) -> tuple[str, ...]:
+    """The sim and pipeline stages that read ``topic`` (the monitor reads every one)."""
     return tuple(spec.name for spec in STAGES.values() if topic in spec.subscribes)

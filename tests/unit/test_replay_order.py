@@ -7,7 +7,7 @@ from cvxnav.record import Recorded, Recording
 from cvxnav.replay import handling_order, replay_stage
 from schemas.messages import Ellipsoids, Header, Message, Pose2D, RobotState, StageStatus
 from schemas.scenario import bundled_scenario
-from schemas.wiring import key, status_key
+from schemas.wiring import key, status_key, topic_of
 from services.planner.stage import PlannerStage
 
 SCENARIO = bundled_scenario()
@@ -41,7 +41,7 @@ def test_replay_follows_the_stages_handling_order_not_the_recorders():
         statuses.append(recorded(status_key(PREFIX, "planner"), StageStatus(
             header=Header(stamp_s=message.header.stamp_s, seq=seq), stage="planner", state="ok",
             input_key=key(PREFIX, topic), input_stamp_s=message.header.stamp_s, processing_ms=1.0), seq))
-    assert [m.key.rsplit("/", 1)[1] for m in outputs] == ["raw_path", "raw_path"]
+    assert [topic_of(PREFIX, m.key) for m in outputs] == ["raw_path", "raw_path"]
 
     received = [recorded(key(PREFIX, topic), message, k) for k, (topic, message) in enumerate(inputs)]
     received[1], received[2] = received[2], received[1]  # state 1 reached the recorder before ellipsoids 0
