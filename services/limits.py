@@ -7,7 +7,7 @@ bounds, an ellipse a micron wide), each with a one-line ``StageInputError`` so t
 and keeps its last good output. Every limit derives from the scenario.
 
 They cannot tell a plausible lie from the truth (a well-formed scan of an obstacle that is not
-there): keeping such messages off the keys is access control's job (README, "Secure deployment").
+there): keeping such messages off the keys is access control's job (docs/security.md).
 """
 
 from __future__ import annotations

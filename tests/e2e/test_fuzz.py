@@ -12,7 +12,7 @@ error status naming the key, the next good message on the key is served as befor
 
 Deliberately absent: well-formed messages with plausible content — a scan of an obstacle that is not
 there, a path answering the current scan. No check on the content can tell them from the truth; that
-defence is access control (README, "Secure deployment"), which keeps foreign publishers off the keys.
+defence is access control (docs/security.md), which keeps foreign publishers off the keys.
 """
 
 from __future__ import annotations
