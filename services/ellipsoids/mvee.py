@@ -195,8 +195,7 @@ def mvee(points: ArrayLike, *, solver: str = "CLARABEL", eps_m: float = 1e-3) ->
 
 _ACTIVE_SET_ROUNDS = 8
 # Todd–Yildirim steps before the first Newton round: they bring the start's worst violators in, so that
-# round usually works on the right support (20 random sets of 20 points: median 1018 -> 648 µs; of
-# 8 points 1086 -> 784 µs; 2 to 4 steps gain alike).
+# round usually works on the right support (docs/benchmarks.md, measurement history).
 _WARM_UP_STEPS = 3
 _LIFT = 3.0  # d + 1 for d = 2: at the optimum Mᵢ = qᵢᵀ X⁻¹ qᵢ equals 3 on the support and ≤ 3 elsewhere.
 

@@ -64,9 +64,8 @@ class RefineSettings:
     max_iterations: int = 25
     # Converged once an iteration changes Σ‖Δz‖² by less than this fraction. For evenly spaced points it
     # is about L² / (n − 1), so 2 % on it is about 1 % on the length: the first solve's answer is taken
-    # when bending the route to the curvature bound lengthened it by less than that. On the public maps
-    # that ends corner-trap and narrow-gap after one solve instead of two at 1e-2 (0.14-0.16 % longer);
-    # the other refined maps take one solve either way. (The planner stage keeps 1e-5: `PlannerConfig`.)
+    # when bending the route to the curvature bound lengthened it by less than that, which on the public
+    # maps saves a second solve for well under 1 % of length. (The planner stage keeps 1e-5: `PlannerConfig`.)
     rel_tolerance: float = 2e-2
     slack_weight: float = 1e3
     backend: str = "clarabel"  # "clarabel": Clarabel called directly; "cvxpy": the reference model
@@ -324,7 +323,7 @@ class _ClarabelPathProblem:
             self._solver = clarabel.DefaultSolver(self._P, self._q, self._A, b, self._cones, self._settings)
         else:
             # As lists: the binding reads a numpy array one element at a time, a list of floats about
-            # three times faster (1.2 -> 0.4 ms a solve at n = 192, the conversion included).
+            # three times faster, the conversion included.
             self._solver.update(A=values.tolist(), b=b.tolist())
         solution = self._solver.solve()
         if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
@@ -358,8 +357,8 @@ class _ClarabelOnDemand:
     200-obstacle fields broke them there in their first solve and were solved twice). An optimum of the
     relaxation that meets them is an optimum of the whole subproblem (it is feasible there, and nothing
     feasible there costs less), so the answer is the same up to the solver's tolerance. Past the lead
-    they are a quarter of the rows and the step cones half of the cones: one solve of corner-trap's
-    subproblem (n = 192), 13.1 → 9.7 ms.
+    they are a quarter of the rows and the step cones half of the cones (docs/benchmarks.md has the
+    figure).
     """
 
     def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, lead: int) -> None:

@@ -51,10 +51,10 @@ logger = logging.getLogger(__name__)
 # Keep the start this far outside an ellipse when it has to be shrunk (level ≥ 1 + margin).
 _START_LEVEL_MARGIN = 0.02
 # A plan that passes deeper into an ellipse than this level has no side of it to keep: a warm repair
-# straddles it (measured on field-25: level 0.23, two failed repairs costing 160 ms before the replan).
+# would straddle it, and fail, before the replan.
 _REPAIR_MIN_LEVEL = 0.5
 # A repair that has not met the curvature bound in this many solves gives way to the next margin or
-# to a replan (field-25: 8–9 solves, about 90 ms, on repairs that then failed verification).
+# to a replan: repairs that took more went on to fail verification.
 _REPAIR_ITERATIONS_UNMET = 4
 _BOXED_IN = ("boxed in: every forward turn the car can make from here crosses an obstacle, even with the margin "
              "near it given up to the hard floor")
@@ -75,11 +75,9 @@ class PlannerConfig:
     # car can no longer steer away. Online, plans keep a wider margin; and they bend to 0.9 of the
     # curvature bound, so the tracker has steering in reserve to correct an error on the tightest arc.
     # A refinement whose curvature is still unmet after a dozen solves does not verify: in the eight
-    # public closed loops every verified plan took 2-8, the unverified ones 9-25 (the cap took
-    # field-60's slowest scans, spent on attempts that fail anyway, from 2.2-3.1 to 1.4-2.4 s).
-    # The closed loops keep the tight convergence tolerance they were measured with. Which way round a
-    # newly seen obstacle the car goes can turn on a hair: with 1e-3, field-60 drove into a dead end and
-    # field-25 took a way 1.43 x the reference (1.16 with 1e-5); with 1e-4, field-25 did the same.
+    # public closed loops every verified plan took 2-8, the unverified ones 9-25. The closed loops keep
+    # the tight convergence tolerance they were measured with: which way round a newly seen obstacle
+    # the car goes can turn on a hair (docs/closed-loop.md).
     refine: RefineSettings = field(
         default_factory=lambda: RefineSettings(level=1.1, curvature_factor=0.9, max_iterations=12, rel_tolerance=1e-5))
     # (level, curvature_factor): wider margins first, for a smoothed curve that clips an ellipse; last

@@ -114,8 +114,7 @@ class Ring:
 class Inbox:
     """The rings of one worker's subscriptions, and the one event that wakes it when any receives.
 
-    Waiting on it instead of polling the subscriptions takes the poll period off every hop: on
-    field-25, `cvxnav run` went from scan→path p50 41–46 to 33–34 ms and 21–23 to 18–19 s wall.
+    Waiting on it instead of polling the subscriptions takes the poll period off every hop.
     """
 
     def __init__(self) -> None:
@@ -342,10 +341,9 @@ def freeze_startup_objects() -> None:
     """Exempt every object alive now (modules, compiled problems, caches) from garbage collection.
 
     The collector's full passes traverse every tracked object, and the libraries a stage imports
-    hold hundreds of thousands of them: on field-25 each pass stalled the stage it hit by up to 33 ms
-    (the smoother's p99 went 38 → 8 ms once they were frozen). What a stage allocates per message is
-    freed by reference counting, so the passes that remain are short. Called once, by the process's
-    main loop, when start-up is done.
+    hold hundreds of thousands of them: each pass stalls the stage it hits by tens of milliseconds.
+    What a stage allocates per message is freed by reference counting, so the passes that remain are
+    short. Called once, by the shell, when start-up is done.
     """
     gc.collect()
     gc.freeze()

@@ -22,9 +22,8 @@ from services.planner.route.tangents import Segments, pair_tangents, terminal_ta
 
 _CHUNK = 20_000  # segments checked at once: bounds the memory of the broad phase
 _BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding) is clear
-# Segments to test at once for the grid to pay: below it the exact test alone is faster (corner-trap tests
-# 29 then 50 segments, and its grid cost 0.65 ms to save 0.05; a 200-obstacle field tests thousands, and
-# the grid takes its route search from 360 to 90 ms).
+# Segments to test at once for the grid to pay: below it the exact test alone is faster (a sparse map
+# tests tens of segments, a dense one thousands: docs/benchmarks.md, measurement history).
 _DEEP_MIN_SEGMENTS = 256
 _BOUND_FACTORS = (1.03, 1.1, 1.2, 1.35, 1.6, 2.2, np.inf)  # informed-ellipse bounds tried, × the straight distance
 

@@ -119,8 +119,8 @@ def trig_roots(coef: FloatArray) -> tuple[FloatArray, FloatArray]:
         return f[:, 0], df[:, 0]
 
     # Newton starts where the chord between the grid values crosses zero (regula falsi): a root on a grid
-    # angle (an axis-aligned wall) is then found at once, where from the middle Newton overshot the end
-    # and bisected towards it (corner-trap: 21 evaluations instead of 6).
+    # angle (an axis-aligned wall) is then found at once, where from the middle Newton overshoots the end
+    # and bisects towards it.
     v_lo, v_hi = values[rows, cols], values[rows, (cols + 1) % len(_GRID)]
     start = _GRID[cols] + h * v_lo / (v_lo - v_hi)
     theta[rows, slot] = bracketed_root(g, _GRID[cols], _GRID[cols] + h, start, f_lo=v_lo)
