@@ -1,0 +1,100 @@
+"""The sim as a ticking core (`SimStage`), driven as the shell drives it, with the real stage cores
+answering in the same process: what it hears routed by the wiring table, time on a clock we advance."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import pytest
+
+from cvxnav.bench.closed_loop import run_closed_loop
+from cvxnav.stages import load_factory
+from schemas.messages import Header, SmoothPath, StageStatus
+from schemas.scenario import bundled_scenario
+from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
+from services.contract import Refusal, StageInputError
+from sim.stage import SimStage
+
+SCENARIO = bundled_scenario()
+
+
+class Bus:
+    """Every output handed to the wiring table's readers of its topic, in the order it was published."""
+
+    def __init__(self, sim: SimStage) -> None:
+        self.cores = {SIM.name: sim, **{name: load_factory(STAGES[name].factory)(SCENARIO) for name in PIPELINE}}
+        self.queue: deque = deque()
+        self.refusals: list[str] = []
+
+    def publish(self, outputs, *, now_s: float) -> None:
+        for topic, message in outputs:
+            if isinstance(message, Refusal):
+                self.refusals.append(message.reason)
+            else:
+                self.queue.extend((reader, topic, message) for reader in subscribers_of(topic))
+
+    def deliver(self, *, now_s: float) -> None:
+        reader, topic, message = self.queue.popleft()
+        self.publish(self.cores[reader].process(topic=topic, message=message, now_s=now_s), now_s=now_s)
+
+
+def drive(sim: SimStage, *, ticks: int | None = None) -> tuple[Bus, float]:
+    """Run the loop as the shell does: every input delivered, then a tick whenever the core asks; the
+    bus and the clock's time at the end."""
+    bus, now_s = Bus(sim), 0.0
+    for name in PIPELINE:
+        sim.stage_alive(stage=name, alive=True, now_s=now_s)
+    while not sim.done and (ticks is None or ticks > 0):
+        if bus.queue:
+            bus.deliver(now_s=now_s)
+            continue
+        due_s = sim.next_tick_s(now_s=now_s)
+        now_s = max(now_s, due_s)
+        bus.publish(sim.tick(now_s=now_s), now_s=now_s)
+        ticks = None if ticks is None else ticks - 1
+    return bus, now_s
+
+
+def test_lockstep_drives_the_same_loop_as_the_closed_loop_bench():
+    sim = SimStage.from_scenario(SCENARIO)
+    bus, _ = drive(sim)
+    result, bench = sim.result(), run_closed_loop(SCENARIO)
+    assert result.status == bench.status == "reached"
+    assert result.goals_reached == len(SCENARIO.goals)
+    assert result.replans == bench.replans
+    assert result.min_clearance == pytest.approx(bench.min_clearance_m, abs=1e-6)
+    assert len(result.trajectory) - 1 == round(bench.sim_s / sim.config.dt_s)
+    assert not bus.refusals
+    (_, final), = sim.stop(now_s=0.0)
+    assert final.done and final.goals_reached == len(SCENARIO.goals)
+
+
+def test_a_stage_lost_while_a_scan_waits_brakes_and_stands_on_the_wall_clock():
+    sim = SimStage.from_scenario(SCENARIO)
+    bus, now_s = drive(sim, ticks=30)  # under way: a few scans answered
+    while not any(topic == "scan" for _, topic, _ in bus.queue):
+        bus.queue.clear()
+        now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        bus.publish(sim.tick(now_s=now_s), now_s=now_s)
+    bus.queue.clear()  # the scan just sent is never answered: the planner dies
+    waiting = sim.core.scan_seq
+    assert sim.core.state.speed_mps > 0.0
+    sim.stage_alive(stage="planner", alive=False, now_s=now_s)
+    assert sim.next_tick_s(now_s=now_s) == now_s  # heard: it acts at once
+    sim.tick(now_s=now_s)
+    assert "planner" in sim.core.missing and sim.core.path is None  # no answer will come: it brakes
+    period_s = sim.core.steps_per_scan * sim.config.dt_s
+    assert sim.next_tick_s(now_s=now_s) == pytest.approx(now_s + period_s)  # and stands a period of wall time
+    assert sim.core.scan_seq == waiting + 1
+
+
+def test_an_answer_to_a_scan_it_never_sent_is_rejected():
+    sim = SimStage.from_scenario(SCENARIO)
+    forged = SmoothPath(header=Header(stamp_s=0.0, seq=0), scan_seq=10**6, status="ok", goal_index=0,
+                        points=[(0.0, 0.0), (1.0, 1.0)], max_curvature=0.0, min_level=2.0, plan_id=1)
+    with pytest.raises(StageInputError, match="never sent"):
+        sim.process(topic="smooth_path", message=forged, now_s=0.0)
+    error = StageStatus(header=Header(stamp_s=0.0, seq=0), stage="planner", state="error", reason="boom",
+                        input_key="k", input_stamp_s=0.0, processing_ms=1.0)
+    sim.hear_status(stage="planner", status=error, now_s=0.0)
+    assert sim.rejected == {0.0: "planner: boom"}
