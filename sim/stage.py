@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pydantic import BaseModel
@@ -77,14 +79,18 @@ class _Waiting:
 class SimStage:
     """The car, its sensor and controller closing the loop with the pipeline; `result()` is run.json."""
 
-    def __init__(self, *, scenario: Scenario, config: SimConfig, stage_wait_s: float = 30.0) -> None:
+    def __init__(self, *, scenario: Scenario, config: SimConfig, stage_wait_s: float = 30.0,
+                 latency_clock: Callable[[], float] = time.perf_counter) -> None:
+        """`latency_clock` times each scan from the moment it is sensed to its answer's arrival (run.json's
+        latency); everything else runs on the shell's `now_s`."""
         self.core = SimCore(scenario=scenario, config=config)
+        self.latency_clock = latency_clock
         self.config = config
         self.reach = Reach.of(scenario)
         self.stage_wait_s = stage_wait_s
         self.done = False
         self.alive: set[str] = set()  # pipeline stages whose token is up
-        self.published_at: dict[int, float] = {}  # scan seq -> clock time it was (last) sent
+        self.published_at: dict[int, float] = {}  # scan seq -> latency_clock when it was (last) sensed
         self.stamps: dict[int, float] = {}  # scan seq -> its sim stamp
         self.latencies_ms: list[float] = []
         self.rejected: dict[float, str] = {}  # scan stamp -> a stage's reason it has no path for it
@@ -111,7 +117,7 @@ class SimStage:
             self._check_answers_a_sent_scan(message.scan_seq)
             sent = self.published_at.pop(message.scan_seq, None)
             if sent is not None:
-                self.latencies_ms.append((now_s - sent) * 1e3)
+                self.latencies_ms.append((self.latency_clock() - sent) * 1e3)
             if self._path is None or message.scan_seq >= self._path.scan_seq:
                 self._path = message
         elif isinstance(message, Ellipsoids):
@@ -273,7 +279,7 @@ class SimStage:
 
     def _publish(self, now_s: float) -> Outputs:
         state, scan = self.core.sense()
-        self.published_at[scan.header.seq] = now_s
+        self.published_at[scan.header.seq] = self.latency_clock()
         self.stamps[scan.header.seq] = scan.header.stamp_s
         return [("state", state), ("scan", scan)]
 

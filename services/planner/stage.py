@@ -213,15 +213,23 @@ class PlannerStage:
         self.plan_margin = 0  # the `_repair_margins` entry the current plan was last repaired at
         self.plan_id = 0
         self._seq = 0
+        self._state: tuple[tuple[int, int], bytes] | None = None  # `state()` as of (plan_id, goal base)
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> PlannerStage:
         return cls(config=PlannerConfig.from_scenario(scenario))
 
     def state(self) -> bytes:
-        """The current plan, the goals reached when it was made and the plan counter, as JSON."""
-        plan = None if self.plan is None else self.plan.tolist()
-        return json.dumps({"plan": plan, "goal_base": self.plan_goal_base, "plan_id": self.plan_id}).encode()
+        """The current plan, the goals reached when it was made and the plan counter, as JSON.
+
+        Every new plan takes a new id, so the JSON is made again only when the id (or the goal base) moved.
+        """
+        made_for = (self.plan_id, self.plan_goal_base)
+        if self._state is None or self._state[0] != made_for:
+            plan = None if self.plan is None else self.plan.tolist()
+            doc = {"plan": plan, "goal_base": self.plan_goal_base, "plan_id": self.plan_id}
+            self._state = (made_for, json.dumps(doc).encode())
+        return self._state[1]
 
     def restore(self, data: bytes) -> None:
         try:
