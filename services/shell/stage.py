@@ -187,6 +187,9 @@ class _Shell:
         self._max_payload_bytes = max_payload_bytes
         self._clock = clock
         self._checkpoint = checkpoint
+        # What the core asks of the shell, looked up once (a protocol check is slow in a busy loop).
+        self.scheduled = isinstance(core, Scheduled)
+        self._watching, self._listening = isinstance(core, Watching), isinstance(core, Listening)
         self._latched: dict[str, str] = {}  # topic -> the last payload published on it
         self._status_seq = 0
         self._last_stamp_s = 0.0  # of the last input the core accepted: the status's sim time
@@ -194,10 +197,10 @@ class _Shell:
 
     @property
     def done(self) -> bool:
-        return isinstance(self._core, Scheduled) and self._core.done
+        return self.scheduled and self._core.done
 
     def next_tick_s(self) -> float | None:
-        return self._core.next_tick_s(now_s=self._clock()) if isinstance(self._core, Scheduled) else None
+        return self._core.next_tick_s(now_s=self._clock()) if self.scheduled else None
 
     def handle_newest(self, *, topic: str, samples: list[zenoh.Sample]) -> None:
         """Of samples in arrival order, process the newest that decodes; report each newer one that does not.
@@ -212,7 +215,7 @@ class _Shell:
         """One input of a source or sink: a topic's sample, a status, or a liveliness change."""
         if tag == _ALIVE:
             stage = stage_of_alive_key(self._prefix, str(sample.key_expr))
-            if stage in self._spec.watches and isinstance(self._core, Watching):
+            if stage in self._spec.watches and self._watching:
                 alive = sample.kind == zenoh.SampleKind.PUT
                 self._step(lambda: self._core.stage_alive(stage=stage, alive=alive, now_s=self._clock()),
                            input_key=None, report_ok=False)
@@ -220,7 +223,7 @@ class _Shell:
             return
         elif tag == _STATUS:
             stage = stage_of_status_key(self._prefix, str(sample.key_expr))
-            if stage is None or not isinstance(self._core, Listening):
+            if stage is None or not self._listening:
                 return
             try:
                 status = decode_sample(StageStatus, sample, max_payload_bytes=self._max_payload_bytes)
@@ -415,7 +418,7 @@ def run_stage(
         periodic_s = time.monotonic()
         while not stop_event.is_set() and not shell.done:
             until_tick_s = STOP_CHECK_S
-            if isinstance(core, Scheduled):
+            if shell.scheduled:
                 due_s = shell.next_tick_s()
                 if due_s is not None and clock() >= due_s:
                     shell.tick()
