@@ -33,7 +33,7 @@ def type_hash(msgtype: str, *, store: Typestore | None = None) -> str:
     """The RIHS01 hash of ``msgtype`` in ``store`` (default: Jazzy's standard interfaces)."""
     store = store or jazzy()
     if msgtype not in store.fielddefs:
-        raise RosNameError(f"unknown message type {msgtype!r} (not among ROS 2 {DISTRO.value}'s interfaces)")
+        raise RosNameError(f"unknown message type {msgtype!r} (not among the {DISTRO.value} standard interfaces)")
     return store.hash_rihs01(msgtype)
 
 
