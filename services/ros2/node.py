@@ -25,6 +25,7 @@ from services.ros2.wire import (
     Attachment,
     EntityKind,
     Endpoint,
+    History,
     NodeInfo,
     QosProfile,
     Reliability,
@@ -97,10 +98,12 @@ class RosNode:
             if reliable:
                 options["sample_miss_detection"] = zenoh.ext.MissDetectionConfig(heartbeat=None,
                                                                                   sporadic_heartbeat=_HEARTBEAT_S)
+        # A reliable keep-all publisher blocks rather than drop when the network cannot keep up.
+        block = reliable and qos.history == History.KEEP_ALL
         publisher = zenoh.ext.declare_advanced_publisher(
             self.session, endpoint.key_expr,
             reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=zenoh.CongestionControl.DROP, **options)
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP, **options)
         entity = RosPublisher(endpoint=endpoint, publisher=publisher,
                               token=self.session.liveliness().declare_token(endpoint.token))
         self.publishers.append(entity)
