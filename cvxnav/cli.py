@@ -170,6 +170,63 @@ def _cmd_status(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+ROS2_ROUTER = "tcp/localhost:7447"  # where rmw_zenoh's sessions find the rmw_zenohd router by default
+MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID ROS 2 allows
+
+
+def _cmd_ros2_play(args: argparse.Namespace) -> int:
+    import threading
+
+    import zenoh
+
+    from services.shell.stage import install_signal_handlers
+    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.ros2.play import BagError, bag_topics, open_bag, play
+    from services.ros2.wire import RosNameError, node_namespace
+
+    try:
+        namespace = node_namespace(args.namespace)
+    except RosNameError as error:
+        raise CliError(str(error)) from None
+    if not (args.connect or args.listen or args.zenoh_config):  # join the ROS graph as rmw_zenoh does
+        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    try:
+        with open_bag(args.bag) as reader:
+            topics = bag_topics(reader)
+            try:
+                session = zenoh.open(zenoh_config_from_args(args))
+            except zenoh.ZError as error:
+                raise CliError(f"cannot open a Zenoh session: {str(error).split('  at ')[0]}") from None
+            with session:
+                print(f"playing {args.bag} at {args.rate:g}x{' (loop)' if args.loop else ''} on domain "
+                      f"{args.domain_id}: " + ", ".join(f"{t.topic} {t.msgtype} ({t.message_count})"
+                                                         for t in topics.values()), flush=True)
+                count = play(reader=reader, session=session, rate=args.rate, loop=args.loop,
+                             domain_id=args.domain_id, namespace=namespace, stop_event=stop, delay_s=args.delay)
+    except BagError as error:
+        raise CliError(str(error)) from None
+    print(f"published {count} messages")
+    return EXIT_OK
+
+
+def _non_negative_float(text: str) -> float:
+    import math
+
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a non-negative number, got {text!r}")
+    return value
+
+
+def _domain_id(text: str) -> int:
+    value = int(text)
+    if not 0 <= value <= MAX_DOMAIN_ID:
+        raise argparse.ArgumentTypeError(f"must be a ROS domain id in 0..{MAX_DOMAIN_ID}, got {text!r}")
+    return value
+
+
 def _cmd_router(args: argparse.Namespace) -> int:
     import threading
 
@@ -299,6 +356,21 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("--json", action="store_true", help="print JSON instead of a table")
     add_zenoh_arguments(status)
     status.set_defaults(handler=_cmd_status)
+
+    ros2 = commands.add_parser("ros2", help="ROS 2 robots over rmw_zenoh, no ROS install (CONTRACTS §6)")
+    ros2_commands = ros2.add_subparsers(dest="ros2_command", required=True, parser_class=_Parser)
+    play = ros2_commands.add_parser("play", help="publish a rosbag2 (MCAP or sqlite3) on rmw_zenoh's keys, in "
+                                                 "real time")
+    play.add_argument("bag", type=Path, help="the bag's directory (or its .mcap / .db3 file)")
+    play.add_argument("--rate", type=_positive_float, default=1.0, help="playback speed, times real time")
+    play.add_argument("--loop", action="store_true", help="start over after the last message")
+    play.add_argument("--delay", type=_non_negative_float, default=0.0, metavar="S",
+                      help="seconds between joining the graph and the first message (and each loop)")
+    play.add_argument("--domain-id", type=_domain_id, default=0, help="ROS_DOMAIN_ID of the graph to join")
+    play.add_argument("--namespace", default="/", help="play the bag's topics under this namespace")
+    add_zenoh_arguments(play)
+    play.epilog = f"Without --connect, --listen or --config it joins the rmw_zenohd router at {ROS2_ROUTER} as a client."
+    play.set_defaults(handler=_cmd_ros2_play)
 
     router = commands.add_parser("router", help="a Zenoh router in this process (default listen tcp/0.0.0.0:7447)")
     add_zenoh_arguments(router)

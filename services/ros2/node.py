@@ -1,0 +1,136 @@
+"""A ROS 2 node on a Zenoh session, declared as rmw_zenoh declares one (Jazzy and later).
+
+One Zenoh session is one ROS context: its node gets the first id of the context's counter and each
+publisher or subscription the next (``rmw_context_impl_s``), each holds its liveliness token
+(``services.ros2.wire``) while it exists, and every sample goes out with the rmw attachment. Publishers
+and subscriptions are zenoh-ext's advanced ones, configured as ``rmw_publisher_data.cpp`` and
+``rmw_subscription_data.cpp`` configure them: for a transient-local topic the publisher keeps a cache of
+``depth`` samples and announces itself (with sporadic heartbeats when reliable), and the subscription
+detects late publishers and queries their caches, so a latched /map reaches a bridge that starts later.
+
+Subscriptions listen to every type and hash of their topic (`wire.topic_key_any_type`) so that a
+publisher of a different definition is reported rather than silently never heard.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+import zenoh.ext
+
+from services.ros2.wire import (
+    Attachment,
+    EntityKind,
+    Endpoint,
+    History,
+    NodeInfo,
+    QosProfile,
+    Reliability,
+    resolve_topic,
+    topic_key_any_type,
+)
+
+# Period of the sample-miss heartbeats of a reliable transient-local publisher (rmw_publisher_data.cpp).
+_HEARTBEAT_S = 0.5
+
+
+@dataclass
+class RosPublisher:
+    endpoint: Endpoint
+    publisher: zenoh.ext.AdvancedPublisher
+    token: zenoh.LivelinessToken
+    sequence_number: int = 1  # rmw_zenoh's first sample is number 1
+
+    def put(self, payload: bytes, *, source_timestamp_ns: int | None = None) -> Attachment:
+        """Publish CDR bytes with the attachment rmw_zenoh's subscriptions require; returns that attachment."""
+        attachment = Attachment(sequence_number=self.sequence_number,
+                                source_timestamp_ns=time.time_ns() if source_timestamp_ns is None
+                                else source_timestamp_ns,
+                                source_gid=self.endpoint.gid)
+        self.publisher.put(payload, attachment=attachment.to_bytes())
+        self.sequence_number += 1
+        return attachment
+
+    def undeclare(self) -> None:
+        self.token.undeclare()
+        self.publisher.undeclare()
+
+
+@dataclass
+class RosSubscription:
+    endpoint: Endpoint
+    subscriber: zenoh.ext.AdvancedSubscriber
+    token: zenoh.LivelinessToken
+
+    def undeclare(self) -> None:
+        self.token.undeclare()
+        self.subscriber.undeclare()
+
+
+class RosNode:
+    """A node, its publishers and its subscriptions on ``session``; ``close`` undeclares them all."""
+
+    def __init__(self, session: zenoh.Session, *, name: str, namespace: str = "/", domain_id: int = 0) -> None:
+        self.session = session
+        self.info = NodeInfo(domain_id=domain_id, zid=str(session.zid()), node_id=0, name=name, namespace=namespace)
+        self._next_id = self.info.node_id + 1
+        self.token = session.liveliness().declare_token(self.info.token)
+        self.publishers: list[RosPublisher] = []
+        self.subscriptions: list[RosSubscription] = []
+
+    def _endpoint(self, *, kind: EntityKind, topic: str, msgtype: str, type_hash: str, qos: QosProfile) -> Endpoint:
+        endpoint = Endpoint(node=self.info, entity_id=self._next_id, kind=kind,
+                            topic=resolve_topic(topic, namespace=self.info.namespace), msgtype=msgtype,
+                            type_hash=type_hash, qos=qos)
+        self._next_id += 1
+        return endpoint
+
+    def publisher(self, *, topic: str, msgtype: str, type_hash: str, qos: QosProfile = QosProfile()) -> RosPublisher:
+        endpoint = self._endpoint(kind=EntityKind.PUBLISHER, topic=topic, msgtype=msgtype, type_hash=type_hash,
+                                  qos=qos)
+        reliable = qos.reliability == Reliability.RELIABLE
+        options: dict = {}
+        if qos.transient_local:
+            options = dict(cache=zenoh.ext.CacheConfig(max_samples=qos.depth), publisher_detection=True)
+            if reliable:
+                options["sample_miss_detection"] = zenoh.ext.MissDetectionConfig(heartbeat=None,
+                                                                                  sporadic_heartbeat=_HEARTBEAT_S)
+        # A reliable keep-all publisher blocks rather than drop when the network cannot keep up.
+        block = reliable and qos.history == History.KEEP_ALL
+        publisher = zenoh.ext.declare_advanced_publisher(
+            self.session, endpoint.key_expr,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
+            congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP, **options)
+        entity = RosPublisher(endpoint=endpoint, publisher=publisher,
+                              token=self.session.liveliness().declare_token(endpoint.token))
+        self.publishers.append(entity)
+        return entity
+
+    def subscription(self, *, topic: str, msgtype: str, type_hash: str, handler: Callable[[zenoh.Sample], None],
+                     qos: QosProfile = QosProfile()) -> RosSubscription:
+        """Subscribe ``handler`` to every sample on ``topic``, whatever type hash its key carries."""
+        endpoint = self._endpoint(kind=EntityKind.SUBSCRIPTION, topic=topic, msgtype=msgtype, type_hash=type_hash,
+                                  qos=qos)
+        options: dict = {}
+        if qos.transient_local:
+            options = dict(history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=qos.depth),
+                           subscriber_detection=True)
+            if qos.reliability == Reliability.RELIABLE:
+                options["recovery"] = zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True)
+        key = topic_key_any_type(domain_id=self.info.domain_id, topic=endpoint.topic)
+        subscriber = zenoh.ext.declare_advanced_subscriber(self.session, key, handler, **options)
+        entity = RosSubscription(endpoint=endpoint, subscriber=subscriber,
+                                 token=self.session.liveliness().declare_token(endpoint.token))
+        self.subscriptions.append(entity)
+        return entity
+
+    def close(self) -> None:
+        """Undeclare every entity, then the node (the order rmw_zenoh's graph sees them leave)."""
+        for entity in [*self.publishers, *self.subscriptions]:
+            entity.undeclare()
+        self.publishers.clear()
+        self.subscriptions.clear()
+        self.token.undeclare()
