@@ -32,9 +32,9 @@ def read_result(path: Path) -> PlanFile | RunFile:
     except json.JSONDecodeError as error:
         raise PlotError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
     kind = doc.get("format") if isinstance(doc, dict) else None
-    model = {PlanFile.model_fields["format"].default: PlanFile, RunFile.model_fields["format"].default: RunFile}.get(kind)
+    model = {"cvxnav.plan/1": PlanFile, "cvxnav.plan/2": PlanFile, RunFile.model_fields["format"].default: RunFile}.get(kind)
     if model is None:
-        raise PlotError(f"{path}: format: expected cvxnav.plan/1 or cvxnav.run/1, got {kind!r}")
+        raise PlotError(f"{path}: format: expected cvxnav.plan/2 (or /1) or cvxnav.run/1, got {kind!r}")
     try:
         return model.read(path)
     except OutputFileError as error:
