@@ -79,6 +79,17 @@ class BenchOptions:
 
 
 @dataclass(frozen=True)
+class MapRun:
+    """The map part of a run (`cvxnav.bench.maps`): the cases, their options, where generated files go, and
+    the shared folder for the growth run (None: no growth run)."""
+
+    cases: list
+    options: object
+    work_dir: Path
+    shared: Path | None
+
+
+@dataclass(frozen=True)
 class PlannerSpec:
     name: str
     call: Callable[[BenchProblem, int], Attempt]
@@ -215,10 +226,26 @@ def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]
 
 
 def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: str,
-              console: Console | None = None, show_progress: bool = True) -> BenchReport:
+              console: Console | None = None, show_progress: bool = True, maps: MapRun | None = None) -> BenchReport:
     console = console or Console(stderr=True)
     started = time.perf_counter()
     peers = planners.peer_status()
+    map_result = None
+    if maps is not None:
+        from cvxnav.bench.maps import run_map_bench
+
+        with Progress(TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
+                      disable=not show_progress) as bar:
+            task = bar.add_task("maps")
+            map_result = run_map_bench(maps.cases, options=maps.options, work_dir=maps.work_dir, shared=maps.shared,
+                                       with_ompl=not peers["ompl"],
+                                       on_step=lambda text: bar.update(task, description=f"maps: {text}"))
+    if not scenarios:
+        return BenchReport(command=command, machine=_machine(), quick=options.quick, repeats=options.repeats,
+                           sampling_budget_s=options.sampling_budget_s, collision_tolerance_m=COLLISION_TOLERANCE_M,
+                           notes=[f"skipped {name}: {why}" for name, why in peers.items() if why], scenarios=[], fit=[],
+                           scaling=None, targets=_targets([], [], None), maps=map_result,
+                           wall_s=time.perf_counter() - started)
     if not peers["ompl"]:
         from ompl import util as ou
 
@@ -305,7 +332,7 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
     return BenchReport(
         command=command, machine=_machine(), quick=options.quick, repeats=options.repeats,
         sampling_budget_s=options.sampling_budget_s, collision_tolerance_m=COLLISION_TOLERANCE_M, notes=notes,
-        scenarios=results, fit=fit, scaling=scaling, targets=_targets(results, fit, scaling),
+        scenarios=results, fit=fit, scaling=scaling, targets=_targets(results, fit, scaling), maps=map_result,
         wall_s=time.perf_counter() - started,
     )
 
@@ -428,6 +455,20 @@ def _fit_rows(report: BenchReport) -> list[tuple[str, ...]]:
 
 
 def print_report(report: BenchReport, *, console: Console) -> None:
+    if report.maps is not None:
+        from cvxnav.bench.maps import map_tables, map_target_lines
+
+        for title, header, rows in map_tables(report.maps):
+            table = Table(title=title)
+            for column in header:
+                table.add_column(column)
+            for row in rows:
+                table.add_row(*row)
+            console.print(table)
+        for line in map_target_lines(report.maps):
+            console.print(f"• {line}")
+    if not report.scenarios:
+        return
     table = Table(title=f"cvxnav bench ({'quick' if report.quick else 'full'}, {report.repeats} repeats)")
     for column in _HEADER[:-1]:
         table.add_column(column, no_wrap=True)
@@ -468,6 +509,14 @@ def to_markdown(report: BenchReport) -> str:
     out = [f"Machine: {m.processor}, {m.cpus} CPUs, {m.platform}, Python {m.python}; "
            + ", ".join(f"{k} {v}" for k, v in m.packages.items()) + ".",
            f"Command: `{report.command}` ({report.wall_s:.0f} s wall).", ""]
+    if report.maps is not None:
+        from cvxnav.bench.maps import map_tables, map_target_lines
+
+        for title, header, rows in map_tables(report.maps):
+            out += [f"**{title}**", ""] + table(header, rows) + [""]
+        out += [f"- {line}" for line in map_target_lines(report.maps)] + [""]
+    if not report.scenarios:
+        return "\n".join(out) + "\n"
     out += table(_HEADER, _rows(report)) + [""]
     out += table(_FIT_HEADER, _fit_rows(report)) + [""]
     if report.scaling:

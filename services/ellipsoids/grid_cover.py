@@ -64,6 +64,7 @@ class GridCoverSettings:
     tile_m: float = 3.2  # side of a tile
     halo_m: float = 1.5  # how far a grown ellipse may reach beyond its tile
     growths: int = 4  # growth parameters p tried per piece
+    join_m: float = 0.4  # border cells closer than this start in one piece
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +113,7 @@ class GridCover:
         res = self.grid.resolution_m
         self.tile_cells = max(8, int(round(self.settings.tile_m / res)))
         self.halo_cells = int(math.ceil(self.settings.halo_m / res))
+        self.join_cells = int(round(self.settings.join_m / (2.0 * res)))  # dilating both by half joins them
         # Distances are needed up to margin + tolerance beyond the halo, plus a cell of rounding.
         self.reach_cells = int(math.ceil((self.margin_m + self.settings.tolerance_m) / res)) + 2
         rows, cols = self.grid.shape
@@ -171,10 +173,15 @@ class GridCover:
                 continue
             mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
             mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
-            labels, n = ndimage.label(mask, structure=_EIGHT)
-            js, is_ = np.nonzero(labels)  # row by row, then column
+            # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off
+            # again only if the wall's ellipse cannot take it within the tolerance.
+            near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
+            labels, n = ndimage.label(near, structure=_EIGHT)
+            js, is_ = np.nonzero(mask)  # row by row, then column
             cells.append(np.column_stack([is_ + cols.start, js + rows.start]))
-            piece.append(labels[js, is_] - 1 + count)
+            used, piece_k = np.unique(labels[js, is_], return_inverse=True)
+            n = len(used)
+            piece.append(piece_k + count)
             boxes += [(rows.start - self.halo_cells, rows.stop + self.halo_cells,
                        cols.start - self.halo_cells, cols.stop + self.halo_cells)] * n
             owner += [k] * n

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from cvxnav.geometry import Ellipse, EllipseStack, FloatArray
 from schemas.occupancy import OccupancyGrid
-from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridPiece, IntArray
+from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridCoverSettings, GridPiece, IntArray
 from services.planner.core import PathPlan
 from services.smoother.core import Smoothed
 
@@ -57,9 +57,11 @@ _CURVE_LEVEL = 1.002
 @dataclass(frozen=True)
 class CorridorSettings:
     coarse_m: float = 0.2  # side of a coarse cell (rounded to a whole number of cells)
-    slack: float = 0.1  # the corridor: coarse cells on a path at most this much longer than the shortest
+    slack: float = 0.05  # the corridor: coarse cells on a path at most this much longer than the shortest
     band_m: float = 0.5  # tiles within this of the corridor are fitted before the first plan
     near_m: float = 1.0  # ... and their ellipses within this of it planned among
+    fence: bool = True  # search the route inside the corridor (see `_fence`)
+    keep_m: float = 1.5  # the corridor keeps this much round the start and goals
     max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
     max_rounds: int = 12  # plans at most while the path keeps meeting ellipses not planned among
 
@@ -74,6 +76,7 @@ class CoarseRoute:
     corridor: FloatArray
     length_m: float = 0.0
     reason: str = ""
+    cells: np.ndarray | None = None  # the corridor's coarse cells (a mask of the coarse grid)
 
 
 @dataclass(eq=False)
@@ -128,10 +131,10 @@ class CoarseGrid:
         return self._graph
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
-        """The shortest path through `waypoints` (start, goals) in order, and the corridor: for each leg
+        """The shortest 16-connected path through `waypoints` (start, goals) in order, and the corridor: for each leg
         a → b, the coarse cells c with d(a, c) + d(c, b) ≤ (1 + slack) d(a, b), every cell of a path at
         most `slack` longer — a route round the other side of an obstacle, hardly longer, is in it too
-        (the 8-connected metric is up to 8 % off the Euclidean one)."""
+        (the graph's metric is up to 2.7 % off the Euclidean one)."""
         g = self.grid.to_grid(waypoints) / self.s + 1.0  # coarse cell coordinates, counting the ring
         wa, wb = np.floor(g[:, 0]).astype(int), np.floor(g[:, 1]).astype(int)
         names = ["start"] + [f"goal {k + 1}" for k in range(len(waypoints) - 1)]
@@ -170,7 +173,17 @@ class CoarseGrid:
         keep[ends] = True
         points = self.grid.to_world(_pulled(path, self.passable, keep=keep) * self.s)
         corridor = self.grid.to_world(centres(np.flatnonzero(near)) * self.s)
-        return CoarseRoute("ok", points, corridor, length_m=total)
+        mask = np.zeros(self.passable.shape, dtype=bool)
+        mask.flat[nodes[near]] = True
+        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask)
+
+    def cells_grid(self, mask: np.ndarray) -> OccupancyGrid:
+        """The coarse cells as a grid of their own (same frame; the ring included), those off `mask` blocked."""
+        R = self.grid.rotation
+        origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m]) - R @ np.array([self.s, self.s])
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        return OccupancyGrid.from_mask(~mask, resolution_m=self.s, origin=(origin[0], origin[1], yaw),
+                                       source="corridor")
 
 
 def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> FloatArray:
@@ -201,17 +214,32 @@ def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> Floa
     return path[out]
 
 
+# Steps of the coarse graph: the 8 neighbours and the 8 knight's moves, one of each pair of opposites. With
+# them the graph's shortest paths are within 2.7 % of the Euclidean length (8 neighbours: 8.2 %).
+_STEPS = ((0, 1), (1, 0), (1, 1), (1, -1), (1, 2), (2, 1), (1, -2), (2, -1))
+
+
 def _grid_graph(passable: np.ndarray, index: np.ndarray, step_m: float) -> sparse.csr_array:
-    """The 8-connected graph of the passable cells, edges weighted by their centres' distance."""
+    """The 16-connected graph of the passable cells, edges weighted by their centres' distance. A knight's
+    move is taken only when both cells it passes beside are passable too (so it cuts no blocked corner
+    the two king's moves round it would not)."""
     rows, cols, weights = [], [], []
     n_rows, n_cols = passable.shape
-    for dr, dc, w in ((0, 1, 1.0), (1, 0, 1.0), (1, 1, _DIAGONAL), (1, -1, _DIAGONAL)):
-        a = (slice(0, n_rows - dr), slice(max(0, -dc), n_cols - max(0, dc)))
-        b = (slice(dr, n_rows), slice(max(0, dc), n_cols - max(0, -dc)))
-        both = passable[a] & passable[b]
-        rows.append(index[a][both])
-        cols.append(index[b][both])
-        weights.append(np.full(len(rows[-1]), w * step_m))
+
+    def shifted(dr: int, dc: int) -> tuple[slice, slice]:  # cells (r + dr, c + dc) for the window's (r, c)
+        return slice(dr + pad_r, n_rows - pad_r_hi + dr), slice(dc + pad_c, n_cols - pad_c_hi + dc)
+
+    for dr, dc in _STEPS:
+        pad_r, pad_r_hi = 0, dr  # dr ≥ 0 always
+        pad_c, pad_c_hi = max(0, -dc), max(0, dc)
+        a, b = shifted(0, 0), shifted(dr, dc)
+        ok = passable[a] & passable[b]
+        if abs(dr) + abs(dc) == 3:  # knight: the two cells beside its line
+            sr, sc = (dr // 2, dc) if abs(dr) == 2 else (dr, dc // 2)
+            ok &= passable[shifted(sr, sc)] & passable[shifted(dr - sr, dc - sc)]
+        rows.append(index[a][ok])
+        cols.append(index[b][ok])
+        weights.append(np.full(len(rows[-1]), math.hypot(dr, dc) * step_m))
     n = int(passable.sum())
     return sparse.csr_array((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
 
@@ -230,6 +258,7 @@ class CorridorPlan:
     tiles_total: int
     searches: int
     rounds: int
+    fence: int = 0  # ellipses of the fence round the corridor the route was searched in (0: none)
 
 
 def plan_in_corridor(
@@ -273,26 +302,89 @@ def plan_in_corridor(
             cover.pieces(new)
     with timer("fit"):
         fitted = cover.pieces(tiles)
-        used = _near(fitted, line, settings.near_m)
+        used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
+        fence = _fence(coarse_grid, coarse, waypoints, keep_m=settings.keep_m) if settings.fence else []
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     for rounds in range(1, settings.max_rounds + 1):
-        grown = list(fixed) + [fitted[k].grown for k in sorted(used)]
-        plan, smoothed = plan_fn(grown)
-        if plan.status != "ok":
-            break  # no route among a subset of the ellipses: none among all of them
+        grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
+        plan, smoothed = plan_fn(grown + fence)
+        if plan.status != "ok" or smoothed is None or not smoothed.verification.ok:
+            if not fence:
+                break  # no route among a subset of the ellipses: none among all of them
+            fence = []  # the fence may have closed the corridor (its cells are coarse): plan without it
+            continue
         with timer("fit"):
             new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
             if new:
                 tiles |= new
                 fitted = cover.pieces(tiles)
-            others = [k for k in range(len(fitted)) if k not in used]
-            curve = smoothed.points if smoothed is not None else plan.points
-            hit = np.union1d(_entered([fitted[k].grown for k in others], plan.points, level=1.0),
-                             _entered([fitted[k].grown for k in others], curve, level=_CURVE_LEVEL))
+            planned = {id(piece) for piece in used}
+            others = [piece for piece in fitted if id(piece) not in planned]
+            hit = np.union1d(_entered([p.grown for p in others], plan.points, level=1.0),
+                             _entered([p.grown for p in others], smoothed.points, level=_CURVE_LEVEL))
             if not len(hit):
                 break
-            used.update(others[k] for k in hit.tolist())
-    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds)
+            used += [others[k] for k in hit.tolist()]
+    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, len(fence))
+
+
+def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, *, keep_m: float) -> list[Ellipse]:
+    """Ellipses round the corridor: the coarse cells off it that touch it, covered as walls are (at the
+    coarse grid's resolution, a loose tolerance), so that the route search stays in the corridor rather
+    than find a way through walls it was not given. The corridor is widened by a coarse cell and by a
+    disc of `keep_m` round each waypoint (a route leaves its start along the heading before it turns)."""
+    mask = ndimage.binary_dilation(coarse.cells, structure=np.ones((3, 3), dtype=bool))
+    nr, nc = mask.shape
+    rows, cols = np.mgrid[0:nr, 0:nc]
+    g = coarse_grid.grid.to_grid(waypoints) / coarse_grid.s + 0.5  # centres' coordinates: cell + 0.5 − ring
+    radius = keep_m / coarse_grid.s
+    for gx, gy in g:
+        mask |= (cols - gx) ** 2 + (rows - gy) ** 2 <= radius**2
+    cells = coarse_grid.cells_grid(mask)
+    fence = GridCover(cells, margin_m=0.5 * coarse_grid.s,
+                      settings=GridCoverSettings(tolerance_m=2.0 * coarse_grid.s, tile_m=32 * coarse_grid.s,
+                                                 halo_m=8 * coarse_grid.s, join_m=0.0))
+    nx, ny = fence.tiles_shape
+    return [piece.raw for piece in fence.pieces([(x, y) for x in range(nx) for y in range(ny)])]
+
+
+def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:
+    """The pieces whose grown ellipse lies in no other's (the others' union is the same without them, so
+    a route among them is one among all): a walls' cover overlaps itself, and specks lie in their walls'.
+
+    Gᵢ ⊆ Gⱼ when ‖Aⱼ x + bⱼ‖ ≤ 1 all round Gᵢ's boundary x(θ) = cᵢ + Lᵢ u(θ) (Lᵢ = Aᵢ⁻¹): that level is
+    ‖M u(θ) + d‖ with M = Aⱼ Lᵢ, whose derivative in θ is at most ‖M‖₂, so it is at most its largest value
+    at `samples` evenly spaced angles plus ‖M‖_F π / samples, which is required to be ≤ 1. Of two equal
+    ellipses the later is the one dropped, and a dropped one's container is kept or is itself inside a
+    larger one that is.
+    """
+    if len(pieces) < 2:
+        return list(range(len(pieces)))
+    A = np.array([p.grown_Ab[:, :2] for p in pieces])
+    b = np.array([p.grown_Ab[:, 2] for p in pieces])
+    stack = EllipseStack(A=A, b=b)
+    centre, (major, minor) = stack.centers, stack.semi_axes.T
+    area = major * minor
+    # Candidates: a container reaches past the other's centre by at least its minor semi-axis.
+    tree = cKDTree(centre)
+    lists = tree.query_ball_point(centre, r=np.maximum(major.max() - minor, 0.0))
+    i = np.repeat(np.arange(len(pieces)), [len(x) for x in lists])
+    j = np.concatenate([np.asarray(x, dtype=np.intp) for x in lists])
+    gap = np.linalg.norm(centre[i] - centre[j], axis=1)
+    keep = (i != j) & (gap <= major[j] - minor[i]) & ((area[j] > area[i]) | ((area[j] == area[i]) & (j < i)))
+    i, j = i[keep], j[keep]
+    if not len(i):
+        return list(range(len(pieces)))
+    L = np.linalg.inv(A[i])
+    M = np.einsum("kab,kbc->kac", A[j], L)
+    d = np.einsum("kab,kb->ka", A[j], centre[i]) + b[j]
+    theta = 2.0 * np.pi * np.arange(samples) / samples
+    u = np.stack([np.cos(theta), np.sin(theta)])  # (2, samples)
+    level = np.linalg.norm(np.einsum("kab,bs->kas", M, u) + d[:, :, None], axis=1).max(axis=1)
+    inside = level + np.sqrt(np.einsum("kab,kab->k", M, M)) * np.pi / samples <= 1.0
+    dropped = np.zeros(len(pieces), dtype=bool)
+    dropped[i[inside]] = True
+    return np.flatnonzero(~dropped).tolist()
 
 
 def _near(pieces: list[GridPiece], line: FloatArray, distance_m: float) -> set[int]:
