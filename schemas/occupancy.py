@@ -221,6 +221,23 @@ class OccupancyGrid:
         out[free] = best
         return out
 
+    def rectangles(self, *, states: tuple[int, ...] = (OCCUPIED,)) -> list[FloatArray]:
+        """The cells in `states` as few rectangles (world corners, counter-clockwise): the runs along each
+        row, joined down the rows while the same run continues. For drawing, not for measuring."""
+        mask = np.isin(self.state, states)
+        padded = np.pad(mask, ((0, 0), (1, 1)))
+        out: list[tuple[int, int, int, int]] = []  # column 0, row 0, column 1, row 1 (exclusive)
+        open_runs: dict[tuple[int, int], int] = {}
+        for j, row in enumerate(padded):
+            edges = np.flatnonzero(np.diff(row.astype(np.int8)))
+            runs = set(zip(edges[::2].tolist(), edges[1::2].tolist()))
+            out += [(c0, j0, c1, j) for (c0, c1), j0 in open_runs.items() if (c0, c1) not in runs]
+            open_runs = {run: open_runs.get(run, j) for run in runs}
+        out += [(c0, j0, c1, self.shape[0]) for (c0, c1), j0 in open_runs.items()]
+        r = self.resolution_m
+        return [self.to_world(np.array([(c0, j0), (c1, j0), (c1, j1), (c0, j1)], dtype=float) * r)
+                for c0, j0, c1, j1 in out]
+
     def distance_window(self, rows: slice, cols: slice, *, halo: int) -> FloatArray:
         """Distance in metres from each cell centre of rows × columns to the nearest blocked cell centre
         (0 on blocked cells), exact wherever that distance is at most `halo` cells: the distance transform

@@ -81,7 +81,9 @@ def run_command(args: argparse.Namespace) -> int:
         options = replace(options, sampling_budget_s=args.budget_s)
     scenarios, map_files = _scenarios(list(args.scenarios), quick=args.quick, maps=args.maps)
     if args.closed_loop:
-        return _closed_loop(scenarios, args)
+        from schemas.scenario import load_scenario
+
+        return _closed_loop(scenarios + [load_scenario(p) for p in map_files], args, map_files=map_files)
     console = Console() if sys.stdout.isatty() else Console(width=160)
     with tempfile.TemporaryDirectory(prefix="cvxnav-maps-") as scratch:
         maps = None
@@ -119,7 +121,7 @@ def _map_cases(files: list[Path], *, args: argparse.Namespace, work_dir: Path):
     return MapRun(cases=cases, options=options, work_dir=work_dir, shared=shared if args.maps else None)
 
 
-def _closed_loop(scenarios: list, args: argparse.Namespace) -> int:
+def _closed_loop(scenarios: list, args: argparse.Namespace, *, map_files: list[Path] = ()) -> int:
     from rich.console import Console
     from rich.markdown import Markdown
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -130,6 +132,8 @@ def _closed_loop(scenarios: list, args: argparse.Namespace) -> int:
     from sim.service import default_time_limit_s
 
     references = reference_lengths(default_scenario_dir() / "REFERENCE.json")
+    for path in map_files:  # a map scenario's REFERENCE.json sits beside it
+        references.update(reference_lengths(path.parent / "REFERENCE.json"))
     rows = []
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("sim {task.completed:5.1f} s"),
                TimeElapsedColumn())
