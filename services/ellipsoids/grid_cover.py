@@ -61,8 +61,8 @@ _GOLDEN_RAD = math.pi * (3.0 - math.sqrt(5.0))  # sunflower samples of a disc
 @dataclass(frozen=True)
 class GridCoverSettings:
     tolerance_m: float = 0.1  # largest excess of a grown ellipse over the grown blocked region
-    tile_m: float = 3.2  # side of a tile
-    halo_m: float = 1.5  # how far a grown ellipse may reach beyond its tile
+    tile_m: float = 2.4  # side of a tile
+    halo_m: float = 1.0  # how far a grown ellipse may reach beyond its tile
     growths: int = 4  # growth parameters p tried per piece
     join_m: float = 0.4  # border cells closer than this start in one piece
 

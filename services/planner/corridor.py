@@ -58,8 +58,8 @@ _CURVE_LEVEL = 1.002
 class CorridorSettings:
     coarse_m: float = 0.2  # side of a coarse cell (rounded to a whole number of cells)
     slack: float = 0.05  # the corridor: coarse cells on a path at most this much longer than the shortest
-    band_m: float = 0.5  # tiles within this of the corridor are fitted before the first plan
-    near_m: float = 1.0  # ... and their ellipses within this of it planned among
+    band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
+    near_m: float = 0.6  # ... and their ellipses within this of it planned among (the fence is 2 cells out)
     fence: bool = True  # search the route inside the corridor (see `_fence`)
     keep_m: float = 1.5  # the corridor keeps this much round the start and goals
     max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
@@ -101,10 +101,11 @@ class CoarseGrid:
         pooled = blocked.reshape(self.nr, k, self.nc, k).any(axis=(1, 3))
         self.passable = ndimage.distance_transform_edt(~pooled) * self.s >= self.margin_m - self.s * _DIAGONAL
 
-    def refine(self, window: DistanceWindow) -> int:
+    def refine(self, window: DistanceWindow, *, watch: np.ndarray | None = None) -> int:
         """Close the coarse cells inside the window none of whose cells is within half a cell's diagonal
         of being `margin_m` clear (the window's D bounds a cell centre's distance from above, and a point
-        of the cell is within half a diagonal of the centre); how many were closed."""
+        of the cell is within half a diagonal of the centre); how many were closed (of those in the
+        `watch` mask, if one is given)."""
         k, res = self.k, self.grid.resolution_m
         rows, cols = window.distance.shape
         # The coarse cells wholly inside the window: cell b spans map rows (b − 1) k … b k.
@@ -119,7 +120,7 @@ class CoarseGrid:
         if close.any():
             self.passable[b0:b1, a0:a1] &= ~close
             self._graph = None
-        return int(close.sum())
+        return int(close.sum() if watch is None else (close & watch[b0:b1, a0:a1]).sum())
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
         """(coarse cell of each node, the graph), rebuilt after a refinement."""
@@ -283,23 +284,29 @@ def plan_in_corridor(
     with timer("corridor"):
         coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m)
     tiles: set = set()
-    refined = len(cover.windows)
-    for searches in range(1, settings.max_searches + 1):
-        with timer("corridor"):
-            for window in cover.windows[refined:]:
-                coarse_grid.refine(window)
-            refined = len(cover.windows)
-            coarse = coarse_grid.route(waypoints, slack=settings.slack)
-        if coarse.status != "ok":
-            plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
-            return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, searches, 0)
+    with timer("corridor"):
+        coarse = coarse_grid.route(waypoints, slack=settings.slack)
+    searches = 1
+    while coarse.status == "ok":
         with timer("fit"):
             line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
             new = cover.tiles_near(line, settings.band_m) - tiles
             if not new:
                 break
             tiles |= new
+            refined = len(cover.windows)
             cover.pieces(new)
+        with timer("corridor"):
+            # The new tiles' distance transforms tell their coarse cells apart more finely; if none of
+            # the corridor's is closed, the shortest path and the corridor are what they were.
+            closed = [coarse_grid.refine(window, watch=coarse.cells) for window in cover.windows[refined:]]
+            if not any(closed) or searches >= settings.max_searches:
+                break
+            coarse = coarse_grid.route(waypoints, slack=settings.slack)
+            searches += 1
+    if coarse.status != "ok":
+        plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
+        return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, searches, 0)
     with timer("fit"):
         fitted = cover.pieces(tiles)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
@@ -329,10 +336,13 @@ def plan_in_corridor(
 
 
 def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, *, keep_m: float) -> list[Ellipse]:
-    """Ellipses round the corridor: the coarse cells off it that touch it, covered as walls are (at the
-    coarse grid's resolution, a loose tolerance), so that the route search stays in the corridor rather
-    than find a way through walls it was not given. The corridor is widened by a coarse cell and by a
-    disc of `keep_m` round each waypoint (a route leaves its start along the heading before it turns)."""
+    """Ellipses round the corridor: the passable coarse cells off it that touch it (a band one coarse cell
+    wide), covered as walls are (at the coarse grid's resolution, a loose tolerance), so that the route
+    search stays in the corridor rather than find a way through walls it was not given. Where the
+    corridor meets impassable cells (walls within the margin) there is no fence: the walls' own ellipses
+    are there, and a fence's would bulge into a corridor no wider than the passage. The corridor is
+    widened by a coarse cell and by a disc of `keep_m` round each waypoint (a route leaves its start
+    along the heading before it turns)."""
     mask = ndimage.binary_dilation(coarse.cells, structure=np.ones((3, 3), dtype=bool))
     nr, nc = mask.shape
     rows, cols = np.mgrid[0:nr, 0:nc]
@@ -340,7 +350,8 @@ def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, 
     radius = keep_m / coarse_grid.s
     for gx, gy in g:
         mask |= (cols - gx) ** 2 + (rows - gy) ** 2 <= radius**2
-    cells = coarse_grid.cells_grid(mask)
+    band = ndimage.binary_dilation(mask, structure=np.ones((3, 3), dtype=bool)) & ~mask & coarse_grid.passable
+    cells = coarse_grid.cells_grid(~band)
     fence = GridCover(cells, margin_m=0.5 * coarse_grid.s,
                       settings=GridCoverSettings(tolerance_m=2.0 * coarse_grid.s, tile_m=32 * coarse_grid.s,
                                                  halo_m=8 * coarse_grid.s, join_m=0.0))
