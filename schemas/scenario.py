@@ -393,10 +393,12 @@ class Scenario(_Frozen):
     @model_validator(mode="after")
     def _maps_and_bounds(self) -> Scenario:
         grids = [o.grid for o in self.obstacles if o.type == "occupancy_grid"]
+        at = [j for j, o in enumerate(self.obstacles) if o.type == "occupancy_grid"]
         if grids and self.format != MAP_SCENARIO_FORMAT:
-            k = next(j for j, o in enumerate(self.obstacles) if o.type == "occupancy_grid")
-            raise FieldError(("obstacles", k, "type"), f"occupancy_grid needs format {MAP_SCENARIO_FORMAT}, "
-                                                      f"got {self.format}")
+            raise FieldError(("obstacles", at[0], "type"), f"occupancy_grid needs format {MAP_SCENARIO_FORMAT}, "
+                                                          f"got {self.format}")
+        if len(grids) > 1:
+            raise FieldError(("obstacles", at[1], "type"), f"one occupancy_grid per scenario (obstacles[{at[0]}] is one)")
         if self.bounds is None:
             if not grids:
                 raise FieldError(("bounds",), "missing (it may be left out only when the scenario names a map)")

@@ -86,3 +86,22 @@ def plan_on_grid(grid: OccupancyGrid, *, start: FloatArray, goals: FloatArray, m
     t3 = time.perf_counter()
     stages = {"inflate": 1e3 * (t1 - t0), "graph": 1e3 * (t2 - t1), "search": 1e3 * (t3 - t2)}
     return GridPlan(path, t3 - t0, stages)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m cvxnav.bench.grid_planner SCENARIO`: one plan, printed (what the bench's memory figure runs)."""
+    import sys
+
+    from schemas.scenario import OccupancyGridObstacle, load_scenario
+
+    path = Path((argv or sys.argv[1:])[0])
+    scenario = load_scenario(path)
+    grid = next(o.grid for o in scenario.obstacles if isinstance(o, OccupancyGridObstacle))
+    plan = plan_on_grid(grid, start=scenario.start.xy, goals=scenario.goals_array, margin_m=scenario.inflation_m)
+    print(f"{scenario.name}: " + (f"{len(plan.path)} cells in {1e3 * plan.time_s:.0f} ms" if plan.path is not None
+                                  else plan.reason))
+    return 0 if plan.path is not None else 3
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

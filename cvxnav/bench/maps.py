@@ -17,14 +17,14 @@ The planners, each a fresh call that reads the files:
   the whole grid (`cvxnav.bench.grid_planner`), scipy.
 * BIT* (OMPL), for a point robot (R²) and for a Dubins car at the car's turning radius (SE(2), the goal
   any of 16 headings at the goal): valid = a free cell of the grid planner's inflated grid (the same
-  margin), motions checked every grid cell; each stops once within 1 % of the REFERENCE optimum, or of
-  cvxnav's own length where there is none, or at its budget.
+  margin), motions checked every grid cell or 0.05 m, whichever is shorter; each stops once within 1 % of
+  the REFERENCE optimum, or of cvxnav's own length where there is none, or at its budget.
 
 Every path is judged on the true geometry (the exact distance to the blocked squares,
 `Scenario.clearance`, on the path resampled at 0.02 m). Growth: the depot tiled side by side 1×, 2× and
 4×, depot-1's query in the first copy, cvxnav and the grid planner timed in turns. Memory: the peak
-resident set (the kernel's `ru_maxrss`) of a `cvxnav plan` process on the 30 × 50 m map, and of a
-process running the grid planner on it.
+resident set (the kernel's `VmHWM`) of a `cvxnav plan` process on the 30 × 50 m map, and of a process
+running the grid planner on it.
 """
 
 from __future__ import annotations
@@ -267,7 +267,7 @@ def call_bitstar(path: Path, *, dubins: bool, budget_s: float, target_m: float |
         valid = lambda s: valid_xy(s[0], s[1])  # noqa: E731
     si = ob.SpaceInformation(space)
     si.setStateValidityChecker(valid)
-    si.setStateValidityCheckingResolution(res / space.getMaximumExtent())
+    si.setStateValidityCheckingResolution(min(res, 0.05) / space.getMaximumExtent())
     si.setup()
     pdef = ob.ProblemDefinition(si)
     start = si.allocState()
@@ -420,23 +420,30 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
     big = next((c for c in cases if c.path.stem == "warehouse-30x50"), None)
     if options.memory and big is not None:
         on_step("memory: peak resident set on the 30 × 50 m map")
-        memory = {CVXNAV: peak_rss_mib([sys.executable, "-m", "cvxnav", "plan", str(big.path), "--out",
-                                        str(work_dir / "warehouse-plan.json")]),
-                  GRID: peak_rss_mib([sys.executable, "-c", _GRID_PROCESS, str(big.path)])}
+        memory = {CVXNAV: peak_rss_mib("cvxnav", "plan", str(big.path), "--out", str(work_dir / "warehouse-plan.json"),
+                                       work_dir=work_dir),
+                  GRID: peak_rss_mib("cvxnav.bench.grid_planner", str(big.path), work_dir=work_dir)}
     return MapBenchResult(scenarios=results, growth=growth, peak_rss_mib=memory, targets=_targets(results, growth, memory),
                           notes=_notes(options))
 
 
-_GRID_PROCESS = ("import sys; from pathlib import Path; from cvxnav.bench.maps import call_grid; "
-                 "sys.exit(0 if call_grid(Path(sys.argv[1])).path is not None else 3)")
+_PEAK_RSS = ("import atexit, os, runpy, sys\n"
+             "def report():\n"
+             "    peak = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\n"
+             "    open(os.environ['CVXNAV_PEAK_RSS_FILE'], 'w').write(peak)\n"
+             "atexit.register(report)\n"
+             "sys.argv = sys.argv[1:]\n"
+             "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n")
 
 
-def peak_rss_mib(command: list[str]) -> float:
-    """The peak resident set of a child process running `command`, from the kernel (`ru_maxrss`, KiB)."""
-    child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    _, _, usage = os.wait4(child.pid, 0)
-    child.returncode = 0  # reaped by wait4
-    return usage.ru_maxrss / 1024.0
+def peak_rss_mib(module: str, *args: str, work_dir: Path) -> float:
+    """The peak resident set of a Python process running `python -m module args`: the kernel's high-water
+    mark of the process's own memory (`VmHWM`, read as it exits; `ru_maxrss` would count the parent's
+    pages the child shares before it execs)."""
+    report = work_dir / f"peak-rss-{module}.txt"
+    subprocess.run([sys.executable, "-c", _PEAK_RSS, module, *args], stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL, env={**os.environ, "CVXNAV_PEAK_RSS_FILE": str(report)}, check=False)
+    return int(report.read_text()) / 1024.0
 
 
 def growth_benchmark(maps: list[tuple[int, Path]], *, repeats: int, seed: int) -> list[MapGrowthPoint]:
@@ -483,15 +490,16 @@ def _notes(options: MapBenchOptions) -> list[str]:
         "planner and BIT* are called in turns (an order shuffled per round), after one untimed call each.",
         "grid (NavFn-like): a cell is free when its centre is at least the margin plus half a cell from the nearest "
         "blocked cell's centre (scipy's exact EDT), then an 8-connected Dijkstra over the whole grid (scipy.sparse.csgraph).",
-        f"BIT*: valid = a free cell of that inflated grid, motions checked every grid cell; it stops within 1 % of the "
+        f"BIT*: valid = a free cell of that inflated grid, motions checked every grid cell or 0.05 m (the shorter); it "
+        f"stops within 1 % of the "
         f"REFERENCE optimum (or of cvxnav's length where there is none) or at {options.sampling_budget_s:g} s. Point: "
         "R²; Dubins: SE(2) at the car's turning radius (rear axle), the goal any of 16 headings within the goal tolerance.",
         f"Collision = true clearance (exact distance to the blocked squares, path resampled at 0.02 m) below the margin − "
         f"{COLLISION_TOLERANCE_M} m. Only cvxnav's path is smooth and honours the start heading and curvature bound; "
         "the grid planner's runs through cell centres, BIT* Dubins' honours the turning radius but not the start's "
         "steering.",
-        "Peak memory: the kernel's peak resident set (ru_maxrss) of a separate process: `cvxnav plan FILE`, and a "
-        "Python process running the grid planner once (both include the interpreter and imports).",
+        "Peak memory: the kernel's high-water mark of a separate process's resident set (VmHWM): `cvxnav plan FILE`, "
+        "and `python -m cvxnav.bench.grid_planner FILE` (both include the interpreter and imports).",
     ]
 
 

@@ -146,7 +146,14 @@ class CoarseGrid:
                                    f"({self.margin_m:.3f} m) of a blocked cell: no path")
         nodes, graph = self._nodes()
         targets = np.searchsorted(nodes, wb * self.nc + wa)
-        dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True)
+        # Only cells a near-shortest path can use matter: the search stops at twice the longest leg's
+        # straight length and a turn round a building (and goes on without a limit if that misses a goal).
+        legs = np.linalg.norm(np.diff(waypoints, axis=0), axis=1)
+        limit = 2.0 * float(legs.max()) + 20.0
+        dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True, limit=limit)
+        if not all(np.isfinite(dist[k, targets[k + 1]]) and dist[k, targets[k + 1]] * (1.0 + slack) <= limit
+                   for k in range(len(targets) - 1)):
+            dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True)
         chain, ends = [int(targets[0])], [0]
         near = np.zeros(len(nodes), dtype=bool)
         total = 0.0
@@ -355,8 +362,9 @@ def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, 
     fence = GridCover(cells, margin_m=0.5 * coarse_grid.s,
                       settings=GridCoverSettings(tolerance_m=2.0 * coarse_grid.s, tile_m=32 * coarse_grid.s,
                                                  halo_m=8 * coarse_grid.s, join_m=0.0))
-    nx, ny = fence.tiles_shape
-    return [piece.raw for piece in fence.pieces([(x, y) for x in range(nx) for y in range(ny)])]
+    b, a = np.nonzero(band)  # the fence's tiles are those its band's cells are in
+    return [piece.raw for piece in fence.pieces(fence.tiles_near(cells.to_world((np.column_stack([a, b]) + 0.5)
+                                                                                 * coarse_grid.s), 0.0))]
 
 
 def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:

@@ -179,3 +179,12 @@ def test_a_map_in_a_version_1_scenario_is_refused(tmp_path):
     with pytest.raises(ScenarioError, match=r"^tiny.json: obstacles\[0\].type: occupancy_grid needs format "
                                             r"cvxnav.scenario/2, got cvxnav.scenario/1$"):
         load_scenario(_scenario(tmp_path, format="cvxnav.scenario/1", bounds={"min": [0, 0], "max": [1, 1]}))
+
+
+def test_one_map_per_scenario(tmp_path):
+    _write_map(tmp_path, _pixels())
+    doc = json.loads(_scenario(tmp_path).read_text())
+    doc["obstacles"].append({"type": "occupancy_grid", "map": "map.yaml"})
+    (tmp_path / "two.json").write_text(json.dumps(doc))
+    with pytest.raises(ScenarioError, match=r"^two.json: obstacles\[1\].type: one occupancy_grid per scenario"):
+        load_scenario(tmp_path / "two.json")
