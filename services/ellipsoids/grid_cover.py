@@ -29,7 +29,7 @@ and corners, wall ends and door jambs as short ones: the count follows the outli
 Every piece of one level of the bisection is fitted, judged and split in one batch of array operations.
 
 Tiles. The grid (with the ring of blocked cells round it: beyond the map is unknown) is cut into square
-tiles; a tile's pieces are its own border cells, fitted when a plan first asks for the tile
+tiles; a tile's pieces are its own border cells (a piece may run on across the edge into tiles fitted with it), fitted when a plan first asks for the tile
 (`GridCover.pieces`), and kept. A piece's grown ellipse must stay within its tile widened by `halo_m` (a
 growth that does not is not taken), so a path further than `halo_m` from every tile it has not fitted
 can touch no ellipse of them (`GridCover.reach_m`). The distance transform is computed once per batch
@@ -155,46 +155,47 @@ class GridCover:
     # ------------------------------------------------------------------ one batch of tiles
 
     def _fit_block(self, block: list[Tile]) -> None:
-        """Fit a batch of neighbouring tiles on one distance transform over them and their halo."""
+        """Fit a rectangle of tiles at once, on one distance transform over it and its halo: its border cells
+        are pieces across the tiles' edges (a wall is not cut at every tile), each piece kept under the tile
+        of its first cell."""
         ranges = [self.tile_range(t) for t in block]
+        rows = slice(min(r.start for r, _ in ranges), max(r.stop for r, _ in ranges))
+        cols = slice(min(c.start for _, c in ranges), max(c.stop for _, c in ranges))
         h = self.halo_cells + 1
-        r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
-        c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
-        edt = self.grid.distance_window(slice(r0, r1), slice(c0, c1), halo=self.reach_cells)
+        edt = self.grid.distance_window(slice(rows.start - h, rows.stop + h), slice(cols.start - h, cols.stop + h),
+                                        halo=self.reach_cells)
         half = 0.5 * self.grid.resolution_m
-        window = DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt - half, 0.0).astype(np.float32))
+        window = DistanceWindow(row0=rows.start - h, col0=cols.start - h,
+                                distance=np.maximum(edt - half, 0.0).astype(np.float32))
         self.windows.append(window)
-        cells, piece, boxes, owner = [], [], [], []
-        count = 0
-        for k, (rows, cols) in enumerate(ranges):
-            self.fitted[block[k]] = []
-            border = self.grid.border_cells(rows, cols)
-            if not len(border):
-                continue
-            mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
-            mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
-            # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off
-            # again only if the wall's ellipse cannot take it within the tolerance.
-            near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
-            labels, n = ndimage.label(near, structure=_EIGHT)
-            js, is_ = np.nonzero(mask)  # row by row, then column
-            cells.append(np.column_stack([is_ + cols.start, js + rows.start]))
-            used, piece_k = np.unique(labels[js, is_], return_inverse=True)
-            n = len(used)
-            piece.append(piece_k + count)
-            boxes += [(rows.start - self.halo_cells, rows.stop + self.halo_cells,
-                       cols.start - self.halo_cells, cols.stop + self.halo_cells)] * n
-            owner += [k] * n
-            count += n
-        if not count:
+        for tile in block:
+            self.fitted[tile] = []
+        border = self.grid.border_cells(rows, cols)
+        if not len(border):
             return
-        cells_a, piece_a = np.vstack(cells), np.concatenate(piece)
-        order = np.argsort(piece_a, kind="stable")  # by piece, then row, then column
-        for k, made in self._bisect(cells_a[order], piece_a[order], np.array(boxes), np.array(owner), window):
-            self.fitted[block[k]].append(made)
+        mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
+        mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
+        # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
+        # only if the wall's ellipse cannot take it within the tolerance.
+        near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
+        labels, _ = ndimage.label(near, structure=_EIGHT)
+        js, is_ = np.nonzero(mask)  # row by row, then column
+        _, piece = np.unique(labels[js, is_], return_inverse=True)
+        order = np.argsort(piece, kind="stable")  # by piece, then row, then column
+        cells = np.column_stack([is_ + cols.start, js + rows.start])[order]
+        count = int(piece.max()) + 1
+        # Every grown ellipse stays within the block and its halo (the block is a whole rectangle of tiles
+        # fitted together, so within `reach_m` of tiles fitted with it).
+        box = (rows.start - self.halo_cells, rows.stop + self.halo_cells,
+               cols.start - self.halo_cells, cols.stop + self.halo_cells)
+        for made in self._bisect(cells, piece[order], np.array([box] * count), window):
+            self.fitted[self._tile_of(made.cells[0])].append(made)
 
-    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, owner: IntArray, window: DistanceWindow):
-        """Fit, judge and split every piece of a level at once, level after level; yields (tile, piece)."""
+    def _tile_of(self, cell: IntArray) -> Tile:
+        return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
+
+    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, window: DistanceWindow):
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken."""
         tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
@@ -204,14 +205,14 @@ class GridCover:
             below = np.bincount(piece, weights=side, minlength=fit.count)
             splittable = (below > 0) & (below < fit.count_cells)
             accept = (excess <= tolerance) | ~splittable
-            yield from self._accepted(fit, p, grown, excess, accept, cells, piece, owner)
+            yield from self._accepted(fit, p, grown, excess, accept, cells, piece)
             # The split pieces' halves: piece 2k + side, renumbered, still by row then column within.
             keep = ~accept[piece]
             halves = 2 * piece[keep] + side[keep].astype(np.intp)
             labels, halves = np.unique(halves, return_inverse=True)
             order = np.argsort(halves, kind="stable")
             cells, piece = cells[keep][order], halves[order]
-            boxes, owner = boxes[labels // 2], owner[labels // 2]
+            boxes = boxes[labels // 2]
 
     def _grow(self, fit: _Fits, window: DistanceWindow, boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
@@ -243,7 +244,7 @@ class GridCover:
         return p[take, best], grown[take, best], excess
 
     def _accepted(self, fit: _Fits, p: FloatArray, grown: FloatArray, excess: FloatArray, accept: np.ndarray,
-                  cells: IntArray, piece: IntArray, owner: IntArray):
+                  cells: IntArray, piece: IntArray):
         """The accepted pieces as world ellipses, each proved to contain its cells (see the module)."""
         idx = np.flatnonzero(accept)
         if not len(idx):
@@ -278,8 +279,8 @@ class GridCover:
         starts = np.searchsorted(piece, idx)
         ends = np.searchsorted(piece, idx, side="right")
         for k in range(len(idx)):
-            yield int(owner[idx[k]]), GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=float(pk[k]),
-                                                excess_m=float(excess[idx[k]]), cells=cells[starts[k] : ends[k]])
+            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=float(pk[k]), excess_m=float(excess[idx[k]]),
+                            cells=cells[starts[k] : ends[k]])
 
 
 def _shape(axes: FloatArray, semi: FloatArray) -> FloatArray:
@@ -392,28 +393,19 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
 
 
 def _blocks(tiles: list[Tile]) -> list[list[Tile]]:
-    """Group tiles into batches that share one distance transform: the 8-connected groups of tiles,
-    each cut in halves along its longer side while its bounding box is more than twice its tiles."""
-    out: list[list[Tile]] = []
+    """The tiles as whole rectangles of tiles, each fitted at once: greedily from the lowest row's first
+    tile, as far along the row as the tiles go, then down the rows while the same run is there."""
     remaining = set(tiles)
+    out: list[list[Tile]] = []
     while remaining:
-        seed = remaining.pop()
-        group, frontier = [seed], [seed]
-        while frontier:
-            x, y = frontier.pop()
-            for n in ((x + dx, y + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)):
-                if n in remaining:
-                    remaining.remove(n)
-                    group.append(n)
-                    frontier.append(n)
-        out.extend(_halve(sorted(group)))
+        x0, y0 = min(remaining, key=lambda t: (t[1], t[0]))
+        x1 = x0
+        while (x1 + 1, y0) in remaining:
+            x1 += 1
+        y1 = y0
+        while all((x, y1 + 1) in remaining for x in range(x0, x1 + 1)):
+            y1 += 1
+        block = [(x, y) for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)]
+        remaining.difference_update(block)
+        out.append(block)
     return out
-
-
-def _halve(group: list[Tile]) -> list[list[Tile]]:
-    xs, ys = [t[0] for t in group], [t[1] for t in group]
-    w, h = max(xs) - min(xs) + 1, max(ys) - min(ys) + 1
-    if w * h <= 2 * len(group) or len(group) <= 2:
-        return [group]
-    axis, mid = (0, (min(xs) + max(xs) + 1) / 2) if w >= h else (1, (min(ys) + max(ys) + 1) / 2)
-    return _halve([t for t in group if t[axis] < mid]) + _halve([t for t in group if t[axis] >= mid])

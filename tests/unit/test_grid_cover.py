@@ -74,7 +74,7 @@ def _wall(length_m: float, *, thickness_cells: int, res: float = 0.05, jag: bool
 @pytest.mark.parametrize("thickness, jag", [(1, False), (2, False), (2, True)])
 def test_a_straight_20_m_wall_is_a_handful_of_ellipses(thickness, jag):
     grid = _wall(20.0, thickness_cells=thickness, jag=jag)
-    cover = GridCover(grid, margin_m=0.45, settings=GridCoverSettings(tile_m=40.0, halo_m=10.0))
+    cover = GridCover(grid, margin_m=0.45)  # its 2.4 m tiles fitted together: pieces run across their edges
     inside = lambda c: np.all((c >= 0) & (c < [grid.shape[1], grid.shape[0]]))  # noqa: E731 (not the ring)
     pieces = [p for p in _all_pieces(cover) if inside(p.cells)]
     assert _proved(grid, _all_pieces(cover)).all()
