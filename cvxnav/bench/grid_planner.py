@@ -41,14 +41,20 @@ def plan_on_grid_file(map_path: Path, *, start: FloatArray, goals: FloatArray, m
     return GridPlan(plan.path, load_s + plan.time_s, {"load": 1e3 * load_s, **plan.stages_ms}, plan.reason)
 
 
+def inflated_free(grid: OccupancyGrid, *, margin_m: float) -> np.ndarray:
+    """The cells whose centre is at least the margin plus half a cell from the nearest blocked cell's centre
+    (the map and the ring of blocked cells round it: beyond the map is unknown)."""
+    rows, cols = grid.shape
+    distance = ndimage.distance_transform_edt(~grid.padded_blocked(slice(-1, rows + 1), slice(-1, cols + 1)))
+    return distance[1:-1, 1:-1] * grid.resolution_m >= margin_m + 0.5 * grid.resolution_m
+
+
 def plan_on_grid(grid: OccupancyGrid, *, start: FloatArray, goals: FloatArray, margin_m: float) -> GridPlan:
     """Distance-transform inflation and an 8-connected Dijkstra over the whole grid."""
     t0 = time.perf_counter()
     rows, cols = grid.shape
     res = grid.resolution_m
-    # The map and the ring of blocked cells round it (beyond the map is unknown).
-    distance = ndimage.distance_transform_edt(~grid.padded_blocked(slice(-1, rows + 1), slice(-1, cols + 1)))
-    free = distance[1:-1, 1:-1] * res >= margin_m + 0.5 * res
+    free = inflated_free(grid, margin_m=margin_m)
     t1 = time.perf_counter()
     index = np.full(free.shape, -1, dtype=np.int64)
     nodes = np.flatnonzero(free)

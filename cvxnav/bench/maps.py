@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from scipy import ndimage
 
 from cvxnav.bench.report import (
     MapBenchResult,
@@ -235,14 +234,15 @@ def call_bitstar(path: Path, *, dubins: bool, budget_s: float, target_m: float |
     from ompl import geometric as og
     from ompl import util as ou
 
+    from cvxnav.bench.grid_planner import inflated_free
+
     ou.setLogLevel(ou.LOG_NONE)
     t0 = time.perf_counter()
     scenario = load_scenario(path)
     grid = _grid(scenario)
     rows, cols = grid.shape
     res = grid.resolution_m
-    distance = ndimage.distance_transform_edt(~grid.padded_blocked(slice(-1, rows + 1), slice(-1, cols + 1)))
-    free = distance[1:-1, 1:-1] * res >= scenario.inflation_m + 0.5 * res
+    free = inflated_free(grid, margin_m=scenario.inflation_m)
     inverse = grid.rotation.T
     ox, oy = grid.origin_x_m, grid.origin_y_m
 
