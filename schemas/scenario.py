@@ -26,6 +26,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     ValidationInfo,
+    field_serializer,
     field_validator,
     model_validator,
 )
@@ -338,15 +339,23 @@ class OccupancyGridObstacle(_Frozen):
     type: Literal["occupancy_grid"] = "occupancy_grid"
     map: str = Field(min_length=1)
     _grid: OccupancyGrid | None = PrivateAttr(default=None)
+    _path: Path | None = PrivateAttr(default=None)
 
     @model_validator(mode="after")
     def _read(self, info: ValidationInfo) -> OccupancyGridObstacle:
-        base = Path((info.context or {}).get("base_dir", "."))
+        path = Path((info.context or {}).get("base_dir", ".")) / self.map
         try:
-            self._grid = load_map(base / self.map)
+            self._grid = load_map(path)
         except MapError as exc:
             raise FieldError(("map",), str(exc)) from None
+        self._path = path.resolve()
         return self
+
+    @field_serializer("map")
+    def _where(self, value: str) -> str:
+        """The map file read, as an absolute path: a scenario written out (a recording's attachment) reads
+        back from anywhere."""
+        return str(self._path) if self._path is not None else value
 
     @classmethod
     def from_grid(cls, grid: OccupancyGrid) -> OccupancyGridObstacle:

@@ -3,6 +3,7 @@ and a bad map reported in one line naming the field, exit code 2."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -93,4 +94,8 @@ def test_bench_on_a_map_file_puts_cvxnav_beside_the_grid_planner(shared_dir: Pat
     assert rows["cvxnav"]["length_ratio"] <= 1.02
     assert rows["cvxnav"]["stages_ms"]["load"] > 0.0 and rows["grid (NavFn-like)"]["stages_ms"]["inflate"] > 0.0
     assert "depot-1" in report["maps"]["targets"]["time_ratio_vs_grid"]
+    if importlib.util.find_spec("ompl") is not None:  # the bench extra: BIT* for a point and for a Dubins car
+        for name in ("BIT* (OMPL, point)", "BIT* (OMPL, Dubins)"):
+            assert rows[name]["repeats"] == 1 and (rows[name]["success"] or rows[name]["reason"])
+            assert not rows[name]["collision"]
     assert "time ÷ grid planner, depot-1" in (tmp_path / "bench.md").read_text()

@@ -188,3 +188,13 @@ def test_one_map_per_scenario(tmp_path):
     (tmp_path / "two.json").write_text(json.dumps(doc))
     with pytest.raises(ScenarioError, match=r"^two.json: obstacles\[1\].type: one occupancy_grid per scenario"):
         load_scenario(tmp_path / "two.json")
+
+
+def test_a_scenario_written_out_reads_its_map_back_from_anywhere(tmp_path, monkeypatch):
+    from schemas.scenario import parse_scenario
+
+    _write_map(tmp_path, _pixels())
+    scenario = load_scenario(_scenario(tmp_path))
+    monkeypatch.chdir(Path("/"))
+    again = parse_scenario(scenario.model_dump_json(), source="recording")  # as a recording's attachment
+    assert np.array_equal(again.obstacles[0].grid.state, scenario.obstacles[0].grid.state)
