@@ -29,11 +29,11 @@ and corners, wall ends and door jambs as short ones: the count follows the outli
 Every piece of one level of the bisection is fitted, judged and split in one batch of array operations.
 
 Tiles. The grid (with the ring of blocked cells round it: beyond the map is unknown) is cut into square
-tiles; a tile's pieces are its own border cells (a piece may run on across the edge into tiles fitted with it), fitted when a plan first asks for the tile
-(`GridCover.pieces`), and kept. A piece's grown ellipse must stay within its tile widened by `halo_m` (a
-growth that does not is not taken), so a path further than `halo_m` from every tile it has not fitted
-can touch no ellipse of them (`GridCover.reach_m`). The distance transform is computed once per batch
-of neighbouring tiles, over them and their halo.
+tiles, fitted when a plan first asks for them (`GridCover.pieces`) and kept. The tiles asked for at once
+are fitted as whole rectangles of tiles, each on one distance transform over it and its halo, its border
+cells pieces across the tiles' edges (a wall is not cut at every tile). A piece's grown ellipse must stay
+within its rectangle widened by `halo_m` (a growth that does not is not taken), so a path further than
+`halo_m` from every tile not yet fitted can touch no ellipse those tiles will get (`GridCover.reach_m`).
 """
 
 from __future__ import annotations
@@ -122,7 +122,7 @@ class GridCover:
 
     @property
     def reach_m(self) -> float:
-        """How far beyond its tile any grown ellipse of the tile can reach."""
+        """How far beyond the tiles fitted with it any grown ellipse can reach."""
         return self.settings.halo_m
 
     def tile_range(self, tile: Tile) -> tuple[slice, slice]:

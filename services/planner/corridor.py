@@ -18,14 +18,17 @@ what the query can use is built:
    lies in tiles already fitted. An optimistic coarse grid would otherwise send the corridor through a
    door the robot does not fit.
 3. The exact route search and refinement (`services.planner.core.plan_until_verified`: tangent graph,
-   convex refinement, verified smoothing) on the fitted ellipses near the corridor alone.
-4. The paths are then held against every other fitted ellipse and every tile they come near: a tile's
-   grown ellipses reach at most `GridCover.reach_m` beyond it, so a path further than that from every
-   tile not fitted can touch no ellipse of them. If they touch or come near one, it is fitted and added
-   and the plan made again. The path returned touches no ellipse of the whole map's cover, and it is the
-   shortest route among a subset of those ellipses: the exact optimum of the whole model (a relaxation's
-   optimum that is feasible is optimal). For the same reason a route search that finds no route among
-   some of the ellipses proves there is none among all of them.
+   convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, inside a fence
+   of thin ellipses where the corridor meets open floor (`_fence`): without it the route search, which
+   sees no wall it was not given, found its way through them, and every such way took another plan.
+4. The paths are then held against every other fitted ellipse and every tile they come near: a grown
+   ellipse reaches at most `GridCover.reach_m` beyond the tiles fitted with it, so a path further than
+   that from every tile not fitted can touch no ellipse those tiles will get. If they touch or come near
+   one, it is fitted and added and the plan made again. The path returned touches no ellipse of the
+   whole map's cover, and its route is the shortest among a subset of them within the corridor: the
+   exact optimum of the model within its corridor (a relaxation's optimum that is feasible is optimal).
+   A fenced search that finds nothing is made again without the fence; one without it that finds no
+   route among some of the ellipses proves there is none among all of them.
 """
 
 from __future__ import annotations
