@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from cvxnav.geometry import EllipseStack, polyline_length
 from cvxnav.plan import PlanSettings, plan_on_model, plan_scenario
