@@ -158,7 +158,7 @@ def write_map_suite(folder: Path, *, shared: Path, quick: bool = False) -> list[
             cases.append(MapCase(folder / f"{name}.json", "ACES building, 1175 × 1173 cells at 0.05 m, 72 % unknown"))
     if (shared / "maps" / "depot.pgm").is_file():
         yaml_name = _write_map(folder, "warehouse-30x50", warehouse_pixels(shared), resolution_m=0.03)
-        doc = _scenario_doc("warehouse-30x50", map_path=yaml_name, start=(9.675, 5.875, 0.1573),
+        doc = _scenario_doc("warehouse-30x50", map_path=yaml_name, start=(9.675, 5.875, 2.022),  # towards the door
                             goal=(28.975, 8.475 + 2 * 15.36),
                             description="the depot at 0.03 m, three copies stacked with doorways: bottom to top")
         (folder / "warehouse-30x50.json").write_text(json.dumps(doc, indent=1))

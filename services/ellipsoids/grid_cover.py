@@ -30,8 +30,8 @@ Every piece of one level of the bisection is fitted, judged and split in one bat
 
 Tiles. The grid (with the ring of blocked cells round it: beyond the map is unknown) is cut into square
 tiles, fitted when a plan first asks for them (`GridCover.pieces`) and kept. The tiles asked for at once
-are fitted as whole rectangles of tiles, each on one distance transform over it and its halo, its border
-cells pieces across the tiles' edges (a wall is not cut at every tile). A piece's grown ellipse must stay
+are fitted as whole rectangles of tiles, their border cells pieces across the tiles' edges (a wall is
+not cut at every tile), neighbouring ones on one distance transform over them and their halo. A piece's grown ellipse must stay
 within its rectangle widened by `halo_m` (a growth that does not is not taken), so a path further than
 `halo_m` from every tile not yet fitted can touch no ellipse those tiles will get (`GridCover.reach_m`).
 """
@@ -154,25 +154,41 @@ class GridCover:
 
     # ------------------------------------------------------------------ one batch of tiles
 
-    def _fit_block(self, block: list[Tile]) -> None:
-        """Fit a rectangle of tiles at once, on one distance transform over it and its halo: its border cells
-        are pieces across the tiles' edges (a wall is not cut at every tile), each piece kept under the tile
-        of its first cell."""
+    def _fit_block(self, group: list[Tile]) -> None:
+        """Fit a group of neighbouring tiles on one distance transform over them and their halo, as whole
+        rectangles of tiles (`_rectangles`): a rectangle's border cells are pieces across its tiles' edges
+        (a wall is not cut at every tile), each kept under the tile of its first cell."""
+        ranges = [self.tile_range(t) for t in group]
+        h = self.halo_cells + 1
+        r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
+        c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
+        edt = self.grid.distance_window(slice(r0, r1), slice(c0, c1), halo=self.reach_cells)
+        half = 0.5 * self.grid.resolution_m
+        window = DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt - half, 0.0).astype(np.float32))
+        self.windows.append(window)
+        for tile in group:
+            self.fitted[tile] = []
+        parts = [part for block in _rectangles(group) if (part := self._pieces_of(block)) is not None]
+        if not parts:
+            return
+        # Every rectangle's pieces in one bisection: a level is one batch of array operations.
+        offsets = np.cumsum([0] + [int(part[1].max()) + 1 for part in parts[:-1]])
+        cells = np.vstack([part[0] for part in parts])
+        piece = np.concatenate([part[1] + offset for part, offset in zip(parts, offsets)])
+        boxes = np.vstack([part[2] for part in parts])
+        for made in self._bisect(cells, piece, boxes, window):
+            self.fitted[self._tile_of(made.cells[0])].append(made)
+
+    def _pieces_of(self, block: list[Tile]) -> tuple[IntArray, IntArray, IntArray] | None:
+        """A rectangle of tiles' border cells (by piece, then row, then column), their first pieces, and
+        each piece's box: the rectangle and its halo, where its grown ellipse must stay (its tiles are
+        fitted together, so that is within `reach_m` of tiles fitted with it)."""
         ranges = [self.tile_range(t) for t in block]
         rows = slice(min(r.start for r, _ in ranges), max(r.stop for r, _ in ranges))
         cols = slice(min(c.start for _, c in ranges), max(c.stop for _, c in ranges))
-        h = self.halo_cells + 1
-        edt = self.grid.distance_window(slice(rows.start - h, rows.stop + h), slice(cols.start - h, cols.stop + h),
-                                        halo=self.reach_cells)
-        half = 0.5 * self.grid.resolution_m
-        window = DistanceWindow(row0=rows.start - h, col0=cols.start - h,
-                                distance=np.maximum(edt - half, 0.0).astype(np.float32))
-        self.windows.append(window)
-        for tile in block:
-            self.fitted[tile] = []
         border = self.grid.border_cells(rows, cols)
         if not len(border):
-            return
+            return None
         mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
         mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
         # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
@@ -181,15 +197,11 @@ class GridCover:
         labels, _ = ndimage.label(near, structure=_EIGHT)
         js, is_ = np.nonzero(mask)  # row by row, then column
         _, piece = np.unique(labels[js, is_], return_inverse=True)
-        order = np.argsort(piece, kind="stable")  # by piece, then row, then column
-        cells = np.column_stack([is_ + cols.start, js + rows.start])[order]
-        count = int(piece.max()) + 1
-        # Every grown ellipse stays within the block and its halo (the block is a whole rectangle of tiles
-        # fitted together, so within `reach_m` of tiles fitted with it).
+        order = np.argsort(piece, kind="stable")
         box = (rows.start - self.halo_cells, rows.stop + self.halo_cells,
                cols.start - self.halo_cells, cols.stop + self.halo_cells)
-        for made in self._bisect(cells, piece[order], np.array([box] * count), window):
-            self.fitted[self._tile_of(made.cells[0])].append(made)
+        return (np.column_stack([is_ + cols.start, js + rows.start])[order], piece[order],
+                np.array([box] * (int(piece.max()) + 1)))
 
     def _tile_of(self, cell: IntArray) -> Tile:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
@@ -393,8 +405,36 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
 
 
 def _blocks(tiles: list[Tile]) -> list[list[Tile]]:
-    """The tiles as whole rectangles of tiles, each fitted at once: greedily from the lowest row's first
-    tile, as far along the row as the tiles go, then down the rows while the same run is there."""
+    """Group tiles into batches that share one distance transform: the 8-connected groups of tiles,
+    each cut in halves along its longer side while its bounding box is more than twice its tiles."""
+    out: list[list[Tile]] = []
+    remaining = set(tiles)
+    while remaining:
+        seed = remaining.pop()
+        group, frontier = [seed], [seed]
+        while frontier:
+            x, y = frontier.pop()
+            for n in ((x + dx, y + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)):
+                if n in remaining:
+                    remaining.remove(n)
+                    group.append(n)
+                    frontier.append(n)
+        out.extend(_halve(sorted(group)))
+    return out
+
+
+def _halve(group: list[Tile]) -> list[list[Tile]]:
+    xs, ys = [t[0] for t in group], [t[1] for t in group]
+    w, h = max(xs) - min(xs) + 1, max(ys) - min(ys) + 1
+    if w * h <= 2 * len(group) or len(group) <= 2:
+        return [group]
+    axis, mid = (0, (min(xs) + max(xs) + 1) / 2) if w >= h else (1, (min(ys) + max(ys) + 1) / 2)
+    return _halve([t for t in group if t[axis] < mid]) + _halve([t for t in group if t[axis] >= mid])
+
+
+def _rectangles(tiles: list[Tile]) -> list[list[Tile]]:
+    """The tiles as whole rectangles of tiles: greedily from the lowest row's first tile, as far along
+    the row as the tiles go, then down the rows while the same run is there."""
     remaining = set(tiles)
     out: list[list[Tile]] = []
     while remaining:
