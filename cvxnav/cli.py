@@ -20,16 +20,19 @@ def _load(scenario: Path | None):
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
+    import time
+
     import numpy as np
 
     from cvxnav.plan import plan_scenario
     from services.geometry import polyline_length
 
-    scenario = _load(args.scenario)
-    plan = plan_scenario(scenario)
+    started = time.perf_counter()
+    scenario = _load(args.scenario)  # the scenario and any map it names: counted in the plan's time
+    plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - started))
     plan.write(args.out)
     if plan.status != "ok":
-        print(f"{scenario.name}: no path to the goals ({plan.timings_ms.total:.0f} ms) -> {args.out}")
+        print(f"{scenario.name}: no path to the goals: {plan.reason} ({plan.timings_ms.total:.0f} ms) -> {args.out}")
         return EXIT_NO_PATH
     path = np.array(plan.path)
     clearance = float(np.min(scenario.clearance(path))) if scenario.obstacles else float("inf")
@@ -385,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
-    plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/1 file")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/1 file")
     plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
     plot.add_argument("--scenario", type=Path, default=None,
                       help="the scenario file (default: the bundled paper scenario, when the file names it)")

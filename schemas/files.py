@@ -1,4 +1,4 @@
-"""Output files `cvxnav.plan/1` and `cvxnav.run/1` (CONTRACTS §4) as frozen pydantic models.
+"""Output files `cvxnav.plan/2` (and `/1`, still read) and `cvxnav.run/1` (CONTRACTS §4) as frozen pydantic models.
 
 Writers and readers share these models, so a file that `read` accepts is exactly what `write` produces:
 finite numbers, no unknown fields, the format string pinned.
@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.scenario import FieldError, Vec2, parse_json_model, read_text
 
-PLAN_FORMAT = "cvxnav.plan/1"
+PLAN_FORMAT = "cvxnav.plan/2"  # /2: `timings_ms` gains `load` and `corridor`, the file `reason`
 RUN_FORMAT = "cvxnav.run/1"
 
 _File = TypeVar("_File", bound="_OutputFile")
@@ -57,8 +57,15 @@ class EllipseModel(_Frozen):
 
 
 class PlanTimings(_Frozen):
-    """Wall time per pipeline stage in milliseconds: cluster → fit → group → optimise → smooth."""
+    """Wall time per pipeline stage in milliseconds: load → corridor → cluster → fit → group → optimise →
+    smooth, and their total (`load`, reading the scenario and its map, included: the time a user waits).
 
+    `corridor` is the coarse search on an occupancy grid; `load` and `corridor` are new in
+    `cvxnav.plan/2` (a `/1` file has neither, and reads as 0).
+    """
+
+    load: float = Field(default=0.0, ge=0)
+    corridor: float = Field(default=0.0, ge=0)
     cluster: float = Field(ge=0)
     fit: float = Field(ge=0)
     group: float = Field(ge=0)
@@ -70,13 +77,24 @@ class PlanTimings(_Frozen):
 class PlanFile(_OutputFile):
     """`cvxnav plan` output: the smoothed centre line, the raw path, and the inflated ellipses it avoids."""
 
-    format: Literal["cvxnav.plan/1"] = PLAN_FORMAT
+    format: Literal["cvxnav.plan/1", "cvxnav.plan/2"] = PLAN_FORMAT
     scenario: str
     status: Literal["ok", "no_path"]
     path: list[Vec2]
     raw_path: list[Vec2]
     ellipsoids: list[EllipseModel]
     timings_ms: PlanTimings
+    reason: str = ""  # why there is no path (new in /2)
+
+    @model_validator(mode="after")
+    def _versioned(self) -> PlanFile:
+        if self.format == PLAN_FORMAT:
+            missing = [k for k in ("load", "corridor") if k not in self.timings_ms.model_fields_set]
+            if missing:
+                raise FieldError(("timings_ms", missing[0]), f"missing (required in {PLAN_FORMAT})")
+        elif self.reason or {"load", "corridor"} & self.timings_ms.model_fields_set:
+            raise FieldError(("format",), f"{self.format} has no reason, load or corridor: the file is {PLAN_FORMAT}")
+        return self
 
 
 class LatencyStats(_Frozen):

@@ -1,8 +1,10 @@
-"""The scenario file `cvxnav.scenario/1` (CONTRACTS §1) as frozen pydantic models, with true geometry.
+"""The scenario files `cvxnav.scenario/1` and `/2` (CONTRACTS §1, §1b) as frozen pydantic models, with
+true geometry.
 
 Everything a stage needs to know about the world is validated here once: a scenario that loads is finite,
 non-degenerate, and has its start and goals in free space inside the bounds. Obstacle geometry is the
-*true* solid (no inflation); planners grow it by `Scenario.inflation_m` themselves.
+*true* solid (no inflation); planners grow it by `Scenario.inflation_m` themselves. A `/2` file may name
+an occupancy grid (a Nav2 `map_server` map), read when the scenario is validated, relative to the file.
 """
 
 from __future__ import annotations
@@ -17,12 +19,25 @@ from typing import Annotated, Any, Literal, Union
 import numpy as np
 import shapely
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 from shapely.geometry.base import BaseGeometry
+
+from schemas.occupancy import FREE, STATE_NAMES, MapError, OccupancyGrid, load_map
 
 FloatArray = NDArray[np.float64]
 
 SCENARIO_FORMAT = "cvxnav.scenario/1"
+MAP_SCENARIO_FORMAT = "cvxnav.scenario/2"  # /1 and occupancy grids
 BUNDLED_SCENARIO = "paper-two-goals.json"
 
 Vec2 = tuple[float, float]
@@ -53,7 +68,7 @@ class _Frozen(BaseModel):
 # Error formatting, shared with schemas.files
 # ---------------------------------------------------------------------------------------------------
 
-_OBSTACLE_TAGS = frozenset({"polygon", "circle", "points"})
+_OBSTACLE_TAGS = frozenset({"polygon", "circle", "points", "occupancy_grid"})
 
 
 def format_loc(loc: tuple[str | int, ...]) -> str:
@@ -101,7 +116,9 @@ def format_validation_error(err: ValidationError) -> str:
     return " ".join(line.split())
 
 
-def parse_json_model(model: type[BaseModel], text: str | bytes, *, source: str, error: type[ValueError]) -> Any:
+def parse_json_model(
+    model: type[BaseModel], text: str | bytes, *, source: str, error: type[ValueError], context: dict | None = None
+) -> Any:
     """Validate JSON text against `model`, turning every failure into one `error` line prefixed by `source`.
 
     The text goes through `json.loads` first so that invalid JSON is reported with line and column, and so
@@ -114,7 +131,7 @@ def parse_json_model(model: type[BaseModel], text: str | bytes, *, source: str, 
     except UnicodeDecodeError as exc:
         raise error(f"{source}: not UTF-8 text: {exc.reason}") from None
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context=context)
     except ValidationError as exc:
         raise error(f"{source}: {format_validation_error(exc)}") from None
 
@@ -313,7 +330,52 @@ class PointsObstacle(_Frozen):
         return _hull_vertices(self._solid)
 
 
-Obstacle = Annotated[Union[PolygonObstacle, CircleObstacle, PointsObstacle], Field(discriminator="type")]
+class OccupancyGridObstacle(_Frozen):
+    """A Nav2 `map_server` map (`map`: its YAML, relative to the scenario file): blocked cells are solid
+    squares. The grid is read when the scenario is validated (`schemas.occupancy.load_map`), or handed in
+    built from an array (`from_grid`: a ROS `/map`)."""
+
+    type: Literal["occupancy_grid"] = "occupancy_grid"
+    map: str = Field(min_length=1)
+    _grid: OccupancyGrid | None = PrivateAttr(default=None)
+    _path: Path | None = PrivateAttr(default=None)
+
+    @model_validator(mode="after")
+    def _read(self, info: ValidationInfo) -> OccupancyGridObstacle:
+        path = Path((info.context or {}).get("base_dir", ".")) / self.map
+        try:
+            self._grid = load_map(path)
+        except MapError as exc:
+            raise FieldError(("map",), str(exc)) from None
+        self._path = path.resolve()
+        return self
+
+    @field_serializer("map")
+    def _where(self, value: str) -> str:
+        """The map file read, as an absolute path: a scenario written out (a recording's attachment) reads
+        back from anywhere."""
+        return str(self._path) if self._path is not None else value
+
+    @classmethod
+    def from_grid(cls, grid: OccupancyGrid) -> OccupancyGridObstacle:
+        """The obstacle of a grid already in memory; `map` names its source."""
+        obstacle = cls.model_construct(map=grid.source)
+        obstacle._grid = grid
+        return obstacle
+
+    @property
+    def grid(self) -> OccupancyGrid:
+        assert self._grid is not None  # set by validation or `from_grid`
+        return self._grid
+
+    def distance(self, points: ArrayLike) -> FloatArray:
+        """Exact distance from each point to the nearest blocked cell (0 in one, or beyond the map)."""
+        return self.grid.clearance(_as_points(points))
+
+
+Obstacle = Annotated[
+    Union[PolygonObstacle, CircleObstacle, PointsObstacle, OccupancyGridObstacle], Field(discriminator="type")
+]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -324,10 +386,10 @@ Obstacle = Annotated[Union[PolygonObstacle, CircleObstacle, PointsObstacle], Fie
 class Scenario(_Frozen):
     """One planning problem: map, robot, sensor, start, goals in order, and the expected outcome."""
 
-    format: Literal["cvxnav.scenario/1"]
+    format: Literal["cvxnav.scenario/1", "cvxnav.scenario/2"]
     name: str = Field(min_length=1)
     description: str = ""
-    bounds: Bounds
+    bounds: Bounds = None  # type: ignore[assignment]  # /2 with a map: the maps' extent when left out
     robot: Robot
     sensor: Sensor
     start: Pose
@@ -335,6 +397,23 @@ class Scenario(_Frozen):
     goal_tolerance: float = Field(gt=0)
     obstacles: list[Obstacle] = Field(default_factory=list)
     expect: Literal["reach", "no_path"]
+
+    @model_validator(mode="after")
+    def _maps_and_bounds(self) -> Scenario:
+        grids = [o.grid for o in self.obstacles if o.type == "occupancy_grid"]
+        at = [j for j, o in enumerate(self.obstacles) if o.type == "occupancy_grid"]
+        if grids and self.format != MAP_SCENARIO_FORMAT:
+            raise FieldError(("obstacles", at[0], "type"), f"occupancy_grid needs format {MAP_SCENARIO_FORMAT}, "
+                                                          f"got {self.format}")
+        if len(grids) > 1:
+            raise FieldError(("obstacles", at[1], "type"), f"one occupancy_grid per scenario (obstacles[{at[0]}] is one)")
+        if self.bounds is None:
+            if not grids:
+                raise FieldError(("bounds",), "missing (it may be left out only when the scenario names a map)")
+            lo = np.min([g.bounds()[0] for g in grids], axis=0)
+            hi = np.max([g.bounds()[1] for g in grids], axis=0)
+            object.__setattr__(self, "bounds", Bounds(min=tuple(lo.tolist()), max=tuple(hi.tolist())))
+        return self
 
     @model_validator(mode="after")
     def _start_and_goals_free(self) -> Scenario:
@@ -348,6 +427,22 @@ class Scenario(_Frozen):
                     loc, f"{list(p)} is outside bounds {list(self.bounds.min)}..{list(self.bounds.max)}"
                 )
         for j, obstacle in enumerate(self.obstacles):
+            if obstacle.type == "occupancy_grid":
+                inside = obstacle.grid.cells_of(pts)[2]
+                for (loc, p), state, within in zip(named, obstacle.grid.state_at(pts), inside):
+                    if not within:
+                        raise FieldError(loc, f"{list(p)} is beyond obstacles[{j}]'s map ({obstacle.map})")
+                    if state != FREE:
+                        raise FieldError(loc, f"{list(p)} is in an {STATE_NAMES[state]} cell of obstacles[{j}]'s map "
+                                              f"({obstacle.map})")
+                # On a cell's edge or corner: a blocked cell a hair away in some direction touches it.
+                nudged = pts[:, None, :] + 1e-9 * np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]])
+                touching = np.any(obstacle.grid.state_at(nudged.reshape(-1, 2)).reshape(-1, 4) != FREE, axis=1)
+                for (loc, p), bad in zip(named, touching):
+                    if bad:
+                        raise FieldError(loc, f"{list(p)} is on the edge of a blocked cell of obstacles[{j}]'s map "
+                                              f"({obstacle.map})")
+                continue
             hit = obstacle.distance(pts) <= 0.0
             for (loc, p), bad in zip(named, hit):
                 if bad:
@@ -400,15 +495,17 @@ class Scenario(_Frozen):
         return self.clearance(points) <= margin_m
 
 
-def parse_scenario(text: str | bytes, *, source: str = "<string>") -> Scenario:
-    """Validate scenario JSON text; any problem raises ScenarioError with one line naming the field."""
-    return parse_json_model(Scenario, text, source=source, error=ScenarioError)
+def parse_scenario(text: str | bytes, *, source: str = "<string>", base_dir: str | Path = ".") -> Scenario:
+    """Validate scenario JSON text; any problem raises ScenarioError with one line naming the field. A map
+    it names is read relative to `base_dir`."""
+    return parse_json_model(Scenario, text, source=source, error=ScenarioError, context={"base_dir": Path(base_dir)})
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario file; any problem raises ScenarioError with one line."""
+    """Read and validate a scenario file (and any map it names, relative to it); any problem raises
+    ScenarioError with one line."""
     text, source = read_text(path, error=ScenarioError)
-    return parse_scenario(text, source=source)
+    return parse_scenario(text, source=source, base_dir=Path(path).parent)
 
 
 def bundled_scenario() -> Scenario:

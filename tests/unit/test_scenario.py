@@ -216,8 +216,8 @@ BAD_CASES: list[tuple[str, Callable[[], str], str]] = [
     ),
     (
         "wrong format string",
-        lambda: _mutated(lambda d: d.update(format="cvxnav.scenario/2")),
-        "bad.json: format: Input should be 'cvxnav.scenario/1'",
+        lambda: _mutated(lambda d: d.update(format="cvxnav.scenario/3")),
+        "bad.json: format: Input should be 'cvxnav.scenario/1' or 'cvxnav.scenario/2'",
     ),
     ("missing field", lambda: _mutated(lambda d: d.pop("sensor")), "bad.json: sensor: Field required"),
     ("invalid JSON", _replace('"rays": 181,', '"rays": 181,,'), "bad.json: invalid JSON: Expecting property name"),
