@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,6 +36,9 @@ class PlanSettings:
     repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
     grid_cover: GridCoverSettings = field(default_factory=GridCoverSettings)  # occupancy grids' cover
     corridor: CorridorSettings = field(default_factory=CorridorSettings)  # ... and where it is fitted
+    # On an occupancy grid the route is long and mostly straight: it is refined in windows round its turns
+    # and its start, this many turning radii wide (`RefineSettings.window_radii`).
+    map_window_radii: float | None = 2.0
 
 
 @dataclass
@@ -114,6 +117,7 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
 
     grids = [o for o in scenario.obstacles if isinstance(o, OccupancyGridObstacle)]
     if grids:
+        settings = replace(settings, refine=replace(settings.refine, window_radii=settings.map_window_radii))
         cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
         found = plan_in_corridor(
             cover=cover,
