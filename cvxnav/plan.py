@@ -69,11 +69,13 @@ def fit_known_obstacles(
 
 
 def plan_on_model(
-    scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None
+    scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
+    route_estimate_m: tuple[float, ...] | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
-    on the model every planner is handed."""
+    on the model every planner is handed. `route_estimate_m`: each leg's length as a coarser search found
+    it (`services.planner.core.plan_path`)."""
     problem = dict(
         start=scenario.start.xy,
         heading_rad=scenario.start.theta,
@@ -82,6 +84,7 @@ def plan_on_model(
         bounds_min=np.array(scenario.bounds.min),
         bounds_max=np.array(scenario.bounds.max),
         max_curvature=scenario.max_curvature,
+        route_estimate_m=route_estimate_m,
     )
     return plan_until_verified(
         **problem,
@@ -123,7 +126,8 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
             cover=cover,
             waypoints=np.vstack([scenario.start.xy, scenario.goals_array]),
             fixed=grown,
-            plan_fn=lambda ellipses: plan_on_model(scenario, ellipses, settings=settings, clock=clock),
+            plan_fn=lambda ellipses, lengths: plan_on_model(scenario, ellipses, settings=settings, clock=clock,
+                                                            route_estimate_m=lengths),
             settings=settings.corridor,
             timer=clock.stage,
         )

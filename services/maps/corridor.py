@@ -80,6 +80,7 @@ class CoarseRoute:
     length_m: float = 0.0
     reason: str = ""
     cells: np.ndarray | None = None  # the corridor's coarse cells (a mask of the coarse grid)
+    leg_lengths_m: tuple[float, ...] = ()  # of the string-pulled path, waypoint to waypoint
 
 
 @dataclass(eq=False)
@@ -182,11 +183,15 @@ class CoarseGrid:
         path[ends] = g - 1.0  # the waypoints themselves, each a vertex of the string-pulled path
         keep = np.zeros(len(path), dtype=bool)
         keep[ends] = True
-        points = self.grid.to_world(_pulled(path, self.passable, keep=keep) * self.s)
+        kept = _pulled(path, self.passable, keep=keep)
+        points = self.grid.to_world(path[kept] * self.s)
         corridor = self.grid.to_world(centres(np.flatnonzero(near)) * self.s)
         mask = np.zeros(self.passable.shape, dtype=bool)
         mask.flat[nodes[near]] = True
-        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask)
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        at_waypoints = along[np.searchsorted(kept, ends)]
+        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask,
+                           leg_lengths_m=tuple(np.diff(at_waypoints).tolist()))
 
     def cells_grid(self, mask: np.ndarray) -> OccupancyGrid:
         """The coarse cells as a grid of their own (same frame; the ring included), those off `mask` blocked."""
@@ -197,12 +202,12 @@ class CoarseGrid:
                                        source="corridor")
 
 
-def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> FloatArray:
-    """The path (coarse-cell coordinates from the map's corner) with every vertex dropped that a straight
-    line over passable coarse cells can skip (string pulling): an 8-connected path wanders between
-    equally long ones, and the route it stands for is straight. Greedy: from each vertex kept, the
-    furthest later vertex in sight by bisection (sight: samples a quarter cell apart on passable cells);
-    the vertices marked `keep` stay."""
+def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> IntArray:
+    """The vertices of the path (coarse-cell coordinates from the map's corner) that string pulling keeps,
+    in order: every vertex is dropped that a straight line over passable coarse cells can skip (an
+    8-connected path wanders between equally long ones, and the route it stands for is straight).
+    Greedy: from each vertex kept, the furthest later vertex in sight by bisection (sight: samples a
+    quarter cell apart on passable cells); the vertices marked `keep` stay."""
 
     def clear(p: FloatArray, q: FloatArray) -> bool:
         n = int(math.ceil(4.0 * float(np.max(np.abs(q - p))))) + 1
@@ -222,7 +227,7 @@ def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> Floa
             else:
                 hi = mid - 1
         out.append(lo)
-    return path[out]
+    return np.asarray(out)
 
 
 # Steps of the coarse graph: the 8 neighbours and the 8 knight's moves, one of each pair of opposites. With
@@ -277,7 +282,7 @@ def plan_in_corridor(
     cover: GridCover,
     waypoints: FloatArray,
     fixed: list[Ellipse],
-    plan_fn: Callable[[list[Ellipse]], tuple[PathPlan, Smoothed | None]],
+    plan_fn: Callable[[list[Ellipse], tuple[float, ...]], tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
 ) -> CorridorPlan:
@@ -287,8 +292,9 @@ def plan_in_corridor(
     The plan is made among the fixed ellipses and the fitted ones that come within `near_m` of the
     corridor; then the paths are checked against every other fitted ellipse (the exact segment test on
     the refined points, and on the smoothed curve's samples at `_CURVE_LEVEL`) and against the tiles
-    not fitted, and planned again with whatever they touch. `plan_fn(grown)` plans on a list of grown
-    ellipses (`cvxnav.plan.plan_on_model`); `timer(stage)` wraps the "corridor" and "fit" steps.
+    not fitted, and planned again with whatever they touch. `plan_fn(grown, leg_lengths_m)` plans on a
+    list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length on the coarse grid
+    (where the route search starts its bounds); `timer(stage)` wraps the "corridor" and "fit" steps.
     """
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
@@ -324,7 +330,7 @@ def plan_in_corridor(
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
-        plan, smoothed = plan_fn(grown + fence)
+        plan, smoothed = plan_fn(grown + fence, coarse.leg_lengths_m)
         if plan.status != "ok" or smoothed is None or not smoothed.verification.ok:
             if not fence:
                 break  # no route among a subset of the ellipses: none among all of them

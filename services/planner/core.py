@@ -9,7 +9,7 @@ sampled like a refined path, without running the refinement.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from itertools import accumulate, chain
@@ -104,6 +104,7 @@ def _route(
     bounds_max: FloatArray,
     level: float,
     extra_m: float,
+    estimate_m: Sequence[float] | None,
 ) -> list[FloatArray] | None:
     """Legs of the shortest route, after a straight lead-in start → origin (none when origin is start),
     round ellipses enlarged by `extra_m`. The caller has checked the lead-in against the ellipses
@@ -118,7 +119,8 @@ def _route(
         legs = [reference[k : k + 2] for k in range(len(goals))]
     else:
         legs = tangent_route(
-            start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level
+            start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level,
+            estimate_m=estimate_m,
         )
     if legs is not None and origin is not start:
         legs[0] = np.vstack([start, legs[0]])
@@ -135,8 +137,12 @@ def plan_path(
     bounds_max: FloatArray,
     max_curvature: float,
     settings: RefineSettings = RefineSettings(),
+    route_estimate_m: Sequence[float] | None = None,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
+
+    `route_estimate_m`: each leg's length as a coarser search found it, where the route search starts
+    its bounds (`route.shortest_route`).
 
     The route search ignores curvature, so its shortest route can demand a turn the car cannot make
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
@@ -187,6 +193,7 @@ def plan_path(
             bounds_max=bounds_max,
             level=settings.level,
             extra_m=extra_m,
+            estimate_m=route_estimate_m,
         )
         if legs is None:
             if best is None and not lead_in and extra_m == 0.0:

@@ -52,7 +52,7 @@ def _corridor_plan(scenario: Scenario, **settings):
     grid = scenario.obstacles[0].grid
     cover = GridCover(grid, margin_m=MARGIN)
     found = plan_in_corridor(cover=cover, waypoints=np.vstack([scenario.start.xy, scenario.goals_array]), fixed=[],
-                             plan_fn=lambda ellipses: plan_on_model(scenario, ellipses),
+                             plan_fn=lambda ellipses, lengths: plan_on_model(scenario, ellipses, route_estimate_m=lengths),
                              settings=CorridorSettings(**settings))
     return found, cover
 
