@@ -141,8 +141,13 @@ class GridCover:
         top = np.array(self.tiles_shape) - 1
         lo = np.clip(np.floor((g - reach) / self.tile_cells).astype(int), 0, top)
         hi = np.clip(np.floor((g + reach) / self.tile_cells).astype(int), 0, top)
-        spans = np.unique(np.hstack([lo, hi]), axis=0)
-        return {(x, y) for ax, ay, bx, by in spans.tolist() for x in range(ax, bx + 1) for y in range(ay, by + 1)}
+        # Each point's square spans a few tiles each way: marked offset by offset, clipped to its last tile.
+        hit = np.zeros(self.tiles_shape, dtype=bool)
+        wide = hi - lo
+        for dx in range(int(wide[:, 0].max()) + 1):
+            for dy in range(int(wide[:, 1].max()) + 1):
+                hit[np.minimum(lo[:, 0] + dx, hi[:, 0]), np.minimum(lo[:, 1] + dy, hi[:, 1])] = True
+        return set(zip(*(axis.tolist() for axis in np.nonzero(hit))))
 
     def pieces(self, tiles: Iterable[Tile]) -> list[GridPiece]:
         """The pieces of the given tiles, fitting the tiles not fitted yet."""
