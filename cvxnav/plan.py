@@ -24,6 +24,7 @@ from services.geometry import Ellipse
 from services.planner.core import PathPlan, plan_until_verified
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
+from services.planner.route import KeepTo
 from services.smoother.core import Smoothed, smooth
 
 
@@ -70,12 +71,12 @@ def fit_known_obstacles(
 
 def plan_on_model(
     scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
-    route_estimate_m: tuple[float, ...] | None = None,
+    route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
-    on the model every planner is handed. `route_estimate_m`: each leg's length as a coarser search found
-    it (`services.planner.core.plan_path`)."""
+    on the model every planner is handed. `route_estimate_m`, `route_keep_to`: each leg's length as a
+    coarser search found it, and where the route may go (`services.planner.core.plan_path`)."""
     problem = dict(
         start=scenario.start.xy,
         heading_rad=scenario.start.theta,
@@ -85,6 +86,7 @@ def plan_on_model(
         bounds_max=np.array(scenario.bounds.max),
         max_curvature=scenario.max_curvature,
         route_estimate_m=route_estimate_m,
+        route_keep_to=route_keep_to,
     )
     return plan_until_verified(
         **problem,
@@ -126,8 +128,8 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
             cover=cover,
             waypoints=np.vstack([scenario.start.xy, scenario.goals_array]),
             fixed=grown,
-            plan_fn=lambda ellipses, lengths: plan_on_model(scenario, ellipses, settings=settings, clock=clock,
-                                                            route_estimate_m=lengths),
+            plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
+                scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to),
             settings=settings.corridor,
             timer=clock.stage,
         )

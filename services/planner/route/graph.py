@@ -8,7 +8,7 @@ then it is the exact shortest. Tangents, cuts and segment tests are kept as it w
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +28,10 @@ _BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding)
 _DEEP_MIN_SEGMENTS = 256
 _BOUND_FACTORS = (1.03, 1.1, 1.2, 1.35, 1.6, 2.2, np.inf)  # informed-ellipse bounds tried, × the straight distance
 # (or × a longer estimate of the leg: `shortest_route`)
+
+
+# Where a route may go, as a test of segments: starts (n, 2), ends (n, 2) → whether each stays there.
+KeepTo = Callable[[FloatArray, FloatArray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -51,9 +55,11 @@ class _TangentGraph:
     overlapping ellipses, about half of them lie wholly inside the others).
     """
 
-    def __init__(self, *, frames: Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max) -> None:
+    def __init__(self, *, frames: Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max,
+                 keep_to: KeepTo | None = None) -> None:
         self.frames, self.stack, self.terminals = frames, stack, terminals
         self.bounds_min, self.bounds_max = bounds_min, bounds_max
+        self.keep_to = keep_to
         m, t = len(frames.A), len(terminals)
         self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
         self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
@@ -143,6 +149,9 @@ class _TangentGraph:
             hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[k][rows]) & (cols != seg.owner_q[k][rows])
             blocked = np.zeros(len(k), dtype=bool)
             blocked[rows[hit]] = True
+            if self.keep_to is not None:  # a clear segment that leaves where the route may go is no edge
+                clear = np.flatnonzero(~blocked)
+                blocked[clear[~self.keep_to(seg.p[k[clear]], seg.q[k[clear]])]] = True
             self.status[pick[k]] = np.where(blocked, 2, 1)
         keep = self.status[pick] == 1
         seg, length = seg.take(keep), length[keep]
@@ -234,6 +243,7 @@ def shortest_route(
     bounds_max: FloatArray,
     level: float = 1.01,
     estimate_m: Sequence[float] | None = None,
+    keep_to: KeepTo | None = None,
 ) -> Route | None:
     """The exact shortest route start → goal₁ → … outside every ellipse scaled to `level`; None if none.
 
@@ -243,6 +253,9 @@ def shortest_route(
     bounds are then factors of it where it is longer than the straight distance (a winding leg would
     otherwise build and search the graph once per factor before its bound reaches the route). It is
     only where the search starts: a bound is widened until the leg found is within it, either way.
+    `keep_to`: where the route may go (a corridor): a tangent segment it rejects is no edge of the
+    graph, so the route is the shortest among those that keep to it (arcs, which follow the ellipses,
+    are not tested).
     """
     start = np.asarray(start, dtype=float)
     goals = np.atleast_2d(np.asarray(goals, dtype=float))
@@ -266,7 +279,8 @@ def shortest_route(
     # route is an upper bound, and a tighter one than the next factor).
     step = np.zeros(len(goals), dtype=int)
     bound = _BOUND_FACTORS[0] * base + 1e-9
-    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min, bounds_max=bounds_max)
+    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min,
+                             bounds_max=bounds_max, keep_to=keep_to)
     while True:
         todo = [k for k in range(len(goals)) if legs[k] is None]
         if not todo:
@@ -301,14 +315,15 @@ def tangent_route(
     bounds_max: FloatArray,
     level: float = 1.01,
     estimate_m: Sequence[float] | None = None,
+    keep_to: KeepTo | None = None,
 ) -> list[FloatArray] | None:
     """Shortest polylines start → goal₁ → … (one per leg) outside every ellipse; None if there is none.
 
     The polyline stays at level ≥ `level` (arcs circumscribed, tangents exact), inside the bounds.
-    `estimate_m`: see `shortest_route`.
+    `estimate_m`, `keep_to`: see `shortest_route`.
     """
     route = shortest_route(
         start=start, goals=goals, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max, level=level,
-        estimate_m=estimate_m,
+        estimate_m=estimate_m, keep_to=keep_to,
     )
     return None if route is None else route.legs
