@@ -412,17 +412,20 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
     if interior:  # sunflower: evenly spread over the disc
         radius = np.sqrt((step + 0.5) / counts[owner])
         theta = step * _GOLDEN_RAD
+        u, v = radius * np.cos(theta), radius * np.sin(theta)
     else:
-        radius = 1.0
         theta = (2.0 * np.pi) * step / counts[owner]
-    x, y = radius * np.cos(theta) * semi[k, 0][owner], radius * np.sin(theta) * semi[k, 1][owner]
-    V = axes[k][owner]
-    gx = centre[k, 0][owner] + V[:, 0, 0] * x + V[:, 0, 1] * y
-    gy = centre[k, 1][owner] + V[:, 1, 0] * x + V[:, 1, 1] * y
-    start, row0, col0, width = (boxes[k, column][owner] for column in (4, 5, 6, 7))
-    i = np.floor(gx / res).astype(np.intp) - col0
-    j = np.floor(gy / res).astype(np.intp) - row0
-    out[k] = np.maximum.reduceat(distance[start + j * width + i], offsets)
+        u, v = np.cos(theta), np.sin(theta)
+    # A sample (u, v) of the unit disc, in cells from its window's corner: c + V diag(semi) (u, v) / res,
+    # its coefficients formed once per ellipse. Inside the box, so inside the window: ≥ 0, and a cast
+    # truncates as the floor does.
+    start, row0, col0, width = (boxes[k, column] for column in (4, 5, 6, 7))
+    cx, cy = centre[k, 0] / res - col0, centre[k, 1] / res - row0
+    sa, sb = semi[k, 0] / res, semi[k, 1] / res
+    xu, xv, yu, yv = axes[k, 0, 0] * sa, axes[k, 0, 1] * sb, axes[k, 1, 0] * sa, axes[k, 1, 1] * sb
+    i = (cx[owner] + xu[owner] * u + xv[owner] * v).astype(np.intp)
+    j = (cy[owner] + yu[owner] * u + yv[owner] * v).astype(np.intp)
+    out[k] = np.maximum.reduceat(distance[start[owner] + j * width[owner] + i], offsets)
     return out
 
 
