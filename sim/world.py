@@ -13,8 +13,8 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike, NDArray
 
+from services.drive.vehicle import VehicleState, footprint
 from sim.sensor import Circle, Obstacle, RayTargets
-from sim.vehicle import VehicleState, footprint
 
 FloatArray = NDArray[np.float64]
 

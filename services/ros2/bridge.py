@@ -10,13 +10,13 @@ Out: the pipeline's ``scan`` and ``state``, and ``/plan`` (nav_msgs/Path) and ``
   with no return is dropped: inf or NaN, below ``range_min``, above ``range_max``, or beyond the
   scenario sensor's range (the range the planner's memory and checks assume).
 - Each odometry message gives the robot state and one ``/cmd_vel``, so commands flow at the odometry
-  rate: the sim's path tracker (`sim.controller.PurePursuit`) on the verified path, turned into the
-  body twist that drives the footprint centre on the same arc, or zero when braking. The robot brakes
+  rate: the sim's path tracker (`services.drive.controller.PurePursuit`) on the verified path, turned
+  into the body twist that drives the footprint centre on the same arc, or zero when braking. The robot brakes
   with no verified path, on a plan older than `BridgeConfig.stale_after_s` (robot time), while a stage is
   down (then until a plan answers a scan sent after it is back), when the odometry falls silent
   (`tick`), and after any rejected input, until the next verified plan.
-- Every path is checked before it is followed by the sim's guard (`sim.guard.PathGuard`, the newest
-  grown ellipses) from the pose of the scan it answers, and re-checked when newer ellipses arrive.
+- Every path is checked before it is followed by the sim's guard (`services.drive.guard.PathGuard`,
+  the newest grown ellipses) from the pose of the scan it answers, and re-checked when newer ellipses arrive.
 
 Rejected, with a one-line reason in `BridgeOutput.error` (the bridge brakes and carries on): a key
 whose type or hash is not the topic's, malformed CDR, a scan with more rays than the scenario's sensor,
@@ -31,16 +31,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.contract import StageInputError
 from schemas.messages import Ellipsoids, Header, Point, Pose2D, RobotState, Scan, SmoothPath
 from schemas.scenario import Scenario
+from services.contract import StageInputError
+from services.drive.controller import GoalTracker, PurePursuit
+from services.drive.guard import PathGuard, ahead
+from services.drive.vehicle import VehicleLimits, VehicleState
 from services.limits import Reach, check_count
 from services.ros2 import typesupport
 from services.ros2.interface import BRIDGE_TOPICS
 from services.ros2.wire import node_namespace, resolve_topic, topic_key
-from sim.controller import GoalTracker, PurePursuit
-from sim.guard import PathGuard, ahead
-from sim.vehicle import VehicleLimits, VehicleState
 
 _SCANS_KEPT = 256  # recent scans' poses and stamps, by seq (a path is checked from its scan's pose)
 MAX_MAP_CELLS = 4096 * 4096  # a /map larger than this is refused (64 MiB of int8)

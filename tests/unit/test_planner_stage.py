@@ -12,12 +12,12 @@ import pytest
 from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
 from services.convert import ellipse_to_msg, ellipses_from_msgs
+from services.drive.guard import PathGuard
 from services.geometry import Ellipse, EllipseStack, keep_out_scales
 from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap, trim_to_robot
 from services.smoother.core import smooth
 from services.smoother.stage import SmootherStage
-from sim.guard import PathGuard
 
 SCENARIO = bundled_scenario()
 

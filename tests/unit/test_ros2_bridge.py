@@ -17,10 +17,10 @@ from scipy.spatial.transform import Rotation
 from ros2_bag import Recorded, aces_bag_dir, independent_decoder, read_mcap
 from schemas.messages import EllipsoidMsg, Ellipsoids, Header, SmoothPath
 from schemas.scenario import load_scenario
+from services.drive.vehicle import VehicleState, step
 from services.ros2 import typesupport
 from services.ros2.bridge import BridgeConfig, Ros2Bridge, body_twist
 from services.ros2.interface import BRIDGE_TOPICS
-from sim.vehicle import VehicleState, step
 
 SCENARIO = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
 
