@@ -181,7 +181,7 @@ def _cmd_ros2_play(args: argparse.Namespace) -> int:
 
     from services.shell.stage import install_signal_handlers
     from services.shell.zenoh_config import zenoh_config_from_args
-    from services.ros2.play import BagError, bag_topics, open_bag, play
+    from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
     from services.ros2.wire import RosNameError, node_namespace
 
     try:
