@@ -43,16 +43,19 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.service import serve
     from cvxnav.stages import RunError
-    from schemas.wiring import MONITOR, SIM, default_prefix
+    from schemas.wiring import MONITOR, ROS2, SIM, default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
     from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args
 
     scenario = _load(args.scenario)
+    if args.name == ROS2.name:
+        _join_ros_graph(args)
     options = {
         SIM.name: dict(realtime=args.realtime, time_limit_s=args.time_limit_s, noise_std_m=args.noise_std_m,
                        seed=args.seed),
         MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
+        ROS2.name: dict(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace)),
     }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
@@ -174,22 +177,32 @@ ROS2_ROUTER = "tcp/localhost:7447"  # where rmw_zenoh's sessions find the rmw_ze
 MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID ROS 2 allows
 
 
+def _ros_namespace(text: str) -> str:
+    from services.ros2.wire import RosNameError, node_namespace
+
+    try:
+        return node_namespace(text)
+    except RosNameError as error:
+        raise CliError(str(error)) from None
+
+
+def _join_ros_graph(args: argparse.Namespace) -> None:
+    """With no endpoints of its own, a process joins the ROS graph as rmw_zenoh does: the local router."""
+    if not (args.connect or args.listen or args.zenoh_config):
+        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+
+
 def _cmd_ros2_play(args: argparse.Namespace) -> int:
     import threading
 
     import zenoh
 
+    from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
     from services.shell.stage import install_signal_handlers
     from services.shell.zenoh_config import zenoh_config_from_args
-    from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
-    from services.ros2.wire import RosNameError, node_namespace
 
-    try:
-        namespace = node_namespace(args.namespace)
-    except RosNameError as error:
-        raise CliError(str(error)) from None
-    if not (args.connect or args.listen or args.zenoh_config):  # join the ROS graph as rmw_zenoh does
-        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+    namespace = _ros_namespace(args.namespace)
+    _join_ros_graph(args)
     stop = threading.Event()
     install_signal_handlers(stop)
     try:
@@ -346,6 +359,10 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--viewer", action="store_true", help="monitor: spawn a rerun viewer")
     monitor.add_argument("--viewer-url", default=None, metavar="URL",
                          help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
+    bridge = service.add_argument_group("ros2 (the ROS 2 bridge; without --connect, --listen or --config it joins "
+                                        f"rmw_zenohd at {ROS2_ROUTER} as a client)")
+    bridge.add_argument("--domain-id", type=_domain_id, default=0, help="ros2: ROS_DOMAIN_ID of the robot's graph")
+    bridge.add_argument("--namespace", default="/", help="ros2: the robot's namespace (its topics under it)")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
 

@@ -39,11 +39,10 @@ from services.drive.guard import PathGuard, ahead
 from services.drive.vehicle import VehicleLimits, VehicleState
 from services.limits import Reach, check_count
 from services.ros2 import typesupport
-from services.ros2.interface import BRIDGE_TOPICS
+from services.ros2.interface import BRIDGE_TOPICS, MAX_MAP_CELLS
 from services.ros2.wire import node_namespace, resolve_topic, topic_key
 
 _SCANS_KEPT = 256  # recent scans' poses and stamps, by seq (a path is checked from its scan's pose)
-MAX_MAP_CELLS = 4096 * 4096  # a /map larger than this is refused (64 MiB of int8)
 
 
 @dataclass(frozen=True)
@@ -218,7 +217,7 @@ class Ros2Bridge:
         dt_s = stamp_s - self.odom.stamp_s if self.odom is not None else 0.0
         self.odom = _Odometry(pose=pose, speed_mps=float(speed), stamp_s=stamp_s, received_s=received_s)
         self.goals.update(x_m=pose.x_m, y_m=pose.y_m)
-        return BridgeOutput(pipeline=[("state", self._state())],
+        return BridgeOutput(pipeline=self._planning(self._state()),
                             ros=[("cmd_vel", self._command(dt_s=min(max(dt_s, 0.0), 1.0)))])
 
     def _on_scan(self, message: object, *, received_s: float) -> BridgeOutput:
@@ -246,7 +245,7 @@ class Ros2Bridge:
             self.scans.popitem(last=False)
         scan = Scan(header=Header(stamp_s=stamp_s, seq=seq), pose=pose,
                     points=[(float(x), float(y)) for x, y in hits])
-        return BridgeOutput(pipeline=[("state", self._state(pose=pose)), ("scan", scan)])
+        return BridgeOutput(pipeline=[*self._planning(self._state(pose=pose)), ("scan", scan)])
 
     def _on_goal(self, message: object, *, received_s: float) -> BridgeOutput:
         if self.frame_id is None:
@@ -310,9 +309,10 @@ class Ros2Bridge:
         if message.status == "no_path":
             self._brake(f"no path: {message.reason}")
             return BridgeOutput()
-        if message.goal_index != self.goals.reached_count or len(message.points) < 2:
-            return BridgeOutput()  # planned for a goal already passed: keep the current path until the replan
-        points = np.asarray(message.points, dtype=float)
+        points = np.asarray(message.points, dtype=float).reshape(-1, 2)
+        if (message.goal_index != self.goals.reached_count or len(points) < 2 or self.goals.done
+                or math.dist(points[-1], self.goals.goals[-1]) > self.config.goal_tolerance_m):
+            return BridgeOutput()  # planned for a goal passed or replaced: keep the current path until the replan
         reason = self.guard.check(points, start=record.position)
         heading = self.odom.pose.theta_rad if self.odom is not None else 0.0
         if reason is None and np.dot(points[1] - points[0], (math.cos(heading), math.sin(heading))) <= 0.0:
@@ -345,6 +345,11 @@ class Ros2Bridge:
         self._brake("no odometry")
         return BridgeOutput(ros=[("cmd_vel", self._twist(0.0, 0.0))])
 
+    def stopped(self) -> object:
+        """The bridge is stopping: the zero twist to leave the robot with."""
+        self._brake("the bridge stopped")
+        return self._twist(0.0, 0.0)
+
     # ----------------------------------------------------------------------- outputs
 
     def _brake(self, reason: str, *, from_next_scan: bool = False) -> None:
@@ -354,6 +359,11 @@ class Ros2Bridge:
         self.braking_reason = reason
         if from_next_scan:
             self.resume_seq = self.scan_seq
+
+    def _planning(self, state: RobotState) -> list[tuple[str, RobotState]]:
+        """The state for the planner, while there is a goal to plan for (the scans go on regardless: the
+        sensing stage's memory keeps growing for the next goal)."""
+        return [] if self.goals.done else [("state", state)]
 
     def _state(self, *, pose: Pose2D | None = None) -> RobotState:
         """The robot state for the planner; its seq is the newest scan's, which the planner pairs it with."""

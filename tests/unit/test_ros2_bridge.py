@@ -15,6 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ros2_bag import Recorded, aces_bag_dir, independent_decoder, read_mcap
+from ros2_messages import header, laser_scan, odometry, pose, ros, stamp
 from schemas.messages import EllipsoidMsg, Ellipsoids, Header, SmoothPath
 from schemas.scenario import load_scenario
 from services.drive.vehicle import VehicleState, step
@@ -44,43 +45,6 @@ def feed(bridge: Ros2Bridge, recorded: Recorded):
     topic = recorded.topic.strip("/")
     return bridge.receive(topic=topic, key_expr=bridge.keys[topic], payload=recorded.data,
                           received_s=recorded.log_time_ns * 1e-9)
-
-
-def ros(msgtype: str, **fields):
-    return typesupport.message_class(msgtype)(**fields)
-
-
-def stamp(t_s: float):
-    sec = math.floor(t_s)
-    return ros("builtin_interfaces/msg/Time", sec=sec, nanosec=round((t_s - sec) * 1e9))
-
-
-def header(t_s: float, frame: str):
-    return ros("std_msgs/msg/Header", stamp=stamp(t_s), frame_id=frame)
-
-
-def pose(x: float, y: float, yaw: float):
-    return ros("geometry_msgs/msg/Pose", position=ros("geometry_msgs/msg/Point", x=x, y=y, z=0.0),
-               orientation=ros("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
-
-
-def odometry(*, x: float, y: float, yaw: float, t_s: float, frame: str = "odom", speed: float = 0.0) -> bytes:
-    vector = lambda **v: ros("geometry_msgs/msg/Vector3", **{"x": 0.0, "y": 0.0, "z": 0.0, **v})  # noqa: E731
-    message = ros("nav_msgs/msg/Odometry", header=header(t_s, frame), child_frame_id="base_link",
-                  pose=ros("geometry_msgs/msg/PoseWithCovariance", pose=pose(x, y, yaw), covariance=np.zeros(36)),
-                  twist=ros("geometry_msgs/msg/TwistWithCovariance",
-                            twist=ros("geometry_msgs/msg/Twist", linear=vector(x=speed), angular=vector()),
-                            covariance=np.zeros(36)))
-    return typesupport.encode(message, "nav_msgs/msg/Odometry")
-
-
-def laser_scan(ranges, *, t_s: float, angle_min: float, angle_increment: float, range_max: float = 30.0) -> bytes:
-    ranges = np.asarray(ranges, dtype=np.float32)
-    message = ros("sensor_msgs/msg/LaserScan", header=header(t_s, "laser"), angle_min=angle_min,
-                  angle_max=angle_min + angle_increment * (len(ranges) - 1), angle_increment=angle_increment,
-                  time_increment=0.0, scan_time=0.0, range_min=0.05, range_max=range_max, ranges=ranges,
-                  intensities=np.zeros(0, dtype=np.float32))
-    return typesupport.encode(message, "sensor_msgs/msg/LaserScan")
 
 
 def put(bridge: Ros2Bridge, topic: str, payload: bytes, *, t_s: float = 0.0):
@@ -118,14 +82,18 @@ def test_every_real_hit_lies_where_the_laser_says_and_no_return_rays_are_dropped
             else:
                 dropped += 1
                 dropped_at_50 += r == 50.0
-        (_, state), (_, made) = output.pipeline
-        assert made.header.frame_id == "map" and made.header.seq == scans == state.header.seq
+        # The robot's route passes the scenario's goal: from then on the scans go on alone, with no state to
+        # plan from.
+        *states, (_, made) = output.pipeline
+        assert [name for name, _ in states] == ([] if bridge.goals.done else ["state"])
+        assert made.header.frame_id == "map" and made.header.seq == scans
+        assert all(state.header.seq == scans for _, state in states)
         assert made.header.stamp_s == pytest.approx(scan.header.stamp.sec + 1e-9 * scan.header.stamp.nanosec)
         assert (made.pose.x_m, made.pose.y_m, made.pose.theta_rad) == pytest.approx((p.x, p.y, yaw), abs=1e-12)
         np.testing.assert_allclose(np.asarray(made.points).reshape(-1, 2), np.asarray(expected).reshape(-1, 2),
                                    rtol=0, atol=1e-9)
         scans += 1
-    assert scans == 440
+    assert scans == 440 and bridge.goals.done
     # The log writes "no return" as 50.0 m (not inf): beyond the sensor's 20 m, every one is dropped.
     assert dropped_at_50 == 620 and dropped > dropped_at_50
 
@@ -212,6 +180,11 @@ def straight_path(*, x: float, y: float, yaw: float, length_m: float = 6.0) -> l
     return [(x + d * math.cos(yaw), y + d * math.sin(yaw)) for d in s]
 
 
+def heading_to_its_end(bridge: Ros2Bridge, points) -> Ros2Bridge:
+    """The bridge with its goal at the end of ``points``: a path is followed only if it ends at the goal."""
+    return Ros2Bridge(config=dataclasses.replace(bridge.config, goals=(tuple(points[-1]),)))
+
+
 def answer(bridge: Ros2Bridge, points, *, scan_seq: int, plan_id: int = 1) -> SmoothPath:
     return SmoothPath(header=Header(stamp_s=0.0, seq=scan_seq), scan_seq=scan_seq, status="ok", goal_index=0,
                       points=points, max_curvature=0.0, min_level=2.0, plan_id=plan_id)
@@ -224,8 +197,9 @@ def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float):
 
 def test_a_verified_path_is_published_on_plan_and_followed_within_the_speed_bound(bridge, scenario) -> None:
     x, y, yaw = 0.897, -0.181, -0.454
-    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=100.25)
     points = straight_path(x=x, y=y, yaw=yaw)
+    bridge = heading_to_its_end(bridge, points)
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=100.25)
     output = bridge.take_path(answer(bridge, points, scan_seq=0), received_s=100.4)
     assert output.error is None and bridge.latencies_ms == [pytest.approx(150.0)]
     (plan,) = decoded(output, "plan")
@@ -249,6 +223,7 @@ def test_a_verified_path_is_published_on_plan_and_followed_within_the_speed_boun
 
 def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     x, y, yaw = 0.9, -0.2, 0.0
+    bridge = heading_to_its_end(bridge, straight_path(x=x, y=y, yaw=yaw))
     scan_at(bridge, x=x, y=y, yaw=yaw, t_s=10.0)
 
     def command(t_s: float) -> float:
@@ -280,8 +255,13 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.6)
     refused = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=3), received_s=20.7)
     assert "enters a known obstacle's ellipse (cluster 7" in refused.error and decoded(refused, "plan") == []
-    backwards = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=math.pi), scan_seq=3), received_s=20.7)
+    round_the_back = [(x, y), (x - 0.05, y), (x, y + 1.5), (x + 4.0, y + 1.5), bridge.goals.goals[-1]]
+    backwards = bridge.take_path(answer(bridge, round_the_back, scan_seq=3), received_s=20.7)
     assert "against the robot's heading" in backwards.error
+    # A path to somewhere else than the goal (planned for goals since replaced) is not followed.
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.8)
+    elsewhere = bridge.take_path(answer(bridge, straight_path(x=x, y=y + 2.0, yaw=yaw), scan_seq=4), received_s=20.9)
+    assert elsewhere.error is None and decoded(elsewhere, "plan") == [] and bridge.path is None
     # An answer to a scan the bridge never sent is refused.
     assert "did not send" in bridge.take_path(answer(bridge, [(0.0, 0.0), (1.0, 0.0)], scan_seq=99),
                                               received_s=21.0).error
@@ -318,8 +298,12 @@ def test_a_goal_pose_replaces_the_scenarios_goals(bridge) -> None:
     goal = ros("geometry_msgs/msg/PoseStamped", header=header(1.0, "odom"), pose=pose(5.0, -3.0, 0.0))
     output = put(bridge, "goal_pose", typesupport.encode(goal, "geometry_msgs/msg/PoseStamped"))
     assert output.error is None and output.goals == ((5.0, -3.0),)
-    (state_name, state), = put(bridge, "odom", odometry(x=4.8, y=-3.0, yaw=0.0, t_s=1.1)).pipeline
-    assert state.goals_reached == 1 and state.done
+    (state_name, state), = put(bridge, "odom", odometry(x=2.0, y=-3.0, yaw=0.0, t_s=1.1)).pipeline
+    assert state.goal_index == 0 and state.goals_reached == 0 and not state.done
+    # Reached: the robot stands, and the planner gets no state until there is a goal again.
+    reached = put(bridge, "odom", odometry(x=4.8, y=-3.0, yaw=0.0, t_s=1.2))
+    (twist,) = decoded(reached, "cmd_vel")
+    assert bridge.goals.done and reached.pipeline == [] and (twist.linear.x, twist.angular.z) == (0.0, 0.0)
 
 
 def test_an_occupancy_grid_is_kept_as_an_array_with_its_resolution_and_origin(bridge) -> None:
