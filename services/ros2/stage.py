@@ -9,15 +9,17 @@ key, next to the zero /cmd_vel the robot brakes on; nothing else the bridge hold
 
 - Until every pipeline stage's liveliness token has been seen, the bridge counts it as lost: the robot
   stands until the whole pipeline is up and has answered a scan.
-- The timer (`TICK_S`) is the odometry watchdog: with no odometry for `BridgeConfig.odom_timeout_s`, a
-  zero /cmd_vel goes out on every tick, so a base that times out its last command still hears one at
-  10 Hz. Commands otherwise follow the odometry, one per message.
+- Commands follow the odometry, one per message; the timer (`TICK_S`) repeats the last one when none
+  has gone out for `BridgeConfig.command_period_s` (a base times its command out, often after 0.5 s),
+  and is the odometry watchdog: with no odometry for `BridgeConfig.odom_timeout_s`, a zero /cmd_vel on
+  every tick.
 - On stop, a last zero /cmd_vel: the robot is not left driving on the bridge's last command.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from pydantic import BaseModel
@@ -46,7 +48,7 @@ class BridgeStage:
         self._next_tick_s: float | None = None
         self._goals_seq = 0
         for stage in ROS2.watches:  # down until its token is seen
-            self.bridge.stage_lost(stage)
+            self.bridge.stage_lost(stage, now_s=-math.inf)
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, *, domain_id: int = 0, namespace: str = "/") -> BridgeStage:
@@ -64,14 +66,13 @@ class BridgeStage:
     # -- what the shell hands the core
 
     def receive(self, *, port: str, key_expr: str, payload: bytes, now_s: float) -> Outputs:
-        return self._outputs(self.bridge.receive(topic=port, key_expr=key_expr, payload=payload, received_s=now_s),
-                             port=port)
+        return self._outputs(self.bridge.receive(topic=port, key_expr=key_expr, payload=payload, received_s=now_s))
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if isinstance(message, SmoothPath):
-            return self._outputs(self.bridge.take_path(message, received_s=now_s), port=topic)
+            return self._outputs(self.bridge.take_path(message, received_s=now_s))
         if isinstance(message, Ellipsoids):
-            return self._outputs(self.bridge.take_ellipsoids(message), port=topic)
+            return self._outputs(self.bridge.take_ellipsoids(message, received_s=now_s))
         raise StageInputError(f"the ROS 2 bridge does not handle {topic!r}")
 
     def stage_alive(self, *, stage: str, alive: bool, now_s: float) -> Outputs:
@@ -79,28 +80,27 @@ class BridgeStage:
             if stage in self.bridge.missing:
                 logger.info("stage %s is up", stage)
             self.bridge.stage_back(stage)
-        else:
-            logger.warning("stage %s is down: the robot brakes until it is back and a fresh plan arrives", stage)
-            self.bridge.stage_lost(stage)
-        return []
+            return []
+        logger.warning("stage %s is down: the robot brakes until it is back and a fresh plan arrives", stage)
+        return self._outputs(self.bridge.stage_lost(stage, now_s=now_s))
 
     def next_tick_s(self, *, now_s: float) -> float:
         return now_s if self._next_tick_s is None else self._next_tick_s
 
     def tick(self, *, now_s: float) -> Outputs:
         self._next_tick_s = now_s + self.tick_period_s
-        return self._outputs(self.bridge.tick(received_s=now_s), port=None)
+        return self._outputs(self.bridge.tick(received_s=now_s))
 
     def stop(self, *, now_s: float) -> Outputs:
         latencies = np.asarray(self.bridge.latencies_ms)
         if latencies.size:
             logger.info("bridge: %d answers to %d scans, scan -> path latency p50 %.0f / max %.0f ms",
                         latencies.size, self.bridge.scan_seq, np.median(latencies), latencies.max())
-        return [("cmd_vel", Raw(typesupport.encode(self.bridge.stopped(), BRIDGE_TOPICS["cmd_vel"].msgtype)))]
+        return self._outputs(self.bridge.stopped(now_s=now_s))
 
     # -- what the core hands the shell
 
-    def _outputs(self, out: BridgeOutput, *, port: str | None) -> Outputs:
+    def _outputs(self, out: BridgeOutput) -> Outputs:
         """The bridge's answer as the shell publishes it: pipeline messages, goals, CDR, a refusal."""
         outputs: Outputs = list(out.pipeline)
         if out.goals is not None:
@@ -108,6 +108,6 @@ class BridgeStage:
             outputs.append(("goals", Goals(header=Header(stamp_s=stamp_s, seq=self._goals_seq), goals=list(out.goals))))
             self._goals_seq += 1
         outputs += [(name, Raw(typesupport.encode(message, BRIDGE_TOPICS[name].msgtype))) for name, message in out.ros]
-        if out.error is not None and port is not None:
-            outputs.append((port, Refusal(out.error)))
+        if out.error is not None:
+            outputs.append((out.refused, Refusal(out.error)))
         return outputs

@@ -8,6 +8,7 @@ publishes on ROS keys is decoded with mcap-ros2-support, not with rosbags, which
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
@@ -21,7 +22,7 @@ import zenoh
 from cvxnav.supervisor import free_ports
 from ros2_bag import independent_decoder
 from ros2_messages import goal_pose, laser_scan, occupancy_grid, odometry
-from schemas.messages import Goals, Header, RobotState, Scan, SmoothPath, StageStatus, decode
+from schemas.messages import Ellipsoids, Goals, Header, RobotState, Scan, SmoothPath, StageStatus, decode
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, ROS2, alive_key, default_prefix, key, status_key
 from services.ros2.interface import BRIDGE_TOPICS, MAX_MAP_CELLS
@@ -45,6 +46,7 @@ class Robot:
     node: RosNode
     publishers: dict
     received: dict[str, list]  # by bridge output (plan, cmd_vel) and pipeline key (scan, state, goals, status)
+    arrivals: dict[str, list[int]]  # for each received item, its place in the order everything arrived in
     stop: threading.Event
     thread: threading.Thread
     stage_tokens: dict
@@ -66,13 +68,19 @@ class Robot:
 
     def odom(self, *, t_s: float, x: float = 0.0, y: float = 0.0, yaw: float = math.pi / 4, frame: str = "odom",
              speed: float = 0.0):
-        """Send one odometry message; the command that answers it (the newest once its state is out: the
-        watchdog's zeros stop within a tick of an odometry message)."""
-        before = self.count("cmd_vel")
+        """Send one odometry message; the command that answers it: the bridge publishes it right after the
+        state, so it is the first to arrive after the state (a watchdog command may arrive before it)."""
+        states = self.count("state")
         self.put("odom", odometry(x=x, y=y, yaw=yaw, t_s=t_s, frame=frame, speed=speed))
-        self.wait("state", lambda s: abs(s.header.stamp_s - t_s) < 1e-6)
-        self.wait("cmd_vel", after=before)
-        return self.received["cmd_vel"][-1]
+        state = self.wait("state", lambda s: abs(s.header.stamp_s - t_s) < 1e-6, after=states)
+        after = self.arrivals["state"][self.received["state"].index(state)]
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:
+            answers = [c for c, order in zip(self.received["cmd_vel"], self.arrivals["cmd_vel"]) if order > after]
+            if answers:
+                return answers[0]
+            time.sleep(0.01)
+        pytest.fail(f"no command answered the odometry at {t_s} s")
 
     def error(self, needle: str, *, after: int) -> StageStatus:
         return self.wait("status", lambda s: s.state == "error" and needle in s.reason, after=after)
@@ -92,20 +100,28 @@ def robot() -> Iterator[Robot]:
         stage=ROS2.name, core=core, session_config=build_zenoh_config(listen=[endpoint]), prefix=PREFIX,
         stop_event=stop, ready_event=ready))
     received: dict[str, list] = {name: [] for name in ("plan", "cmd_vel", "scan", "state", "goals", "status")}
+    arrivals: dict[str, list[int]] = {name: [] for name in received}
+    order = itertools.count()
+
+    def keep(name: str, item) -> None:
+        arrivals[name].append(next(order))  # before the item: a reader that sees the item sees its place
+        received[name].append(item)
+
     decoders = {name: independent_decoder(BRIDGE_TOPICS[name].msgtype) for name in ("plan", "cmd_vel")}
     models = {"scan": Scan, "state": RobotState, "goals": Goals}
     with zenoh.open(build_zenoh_config(connect=[endpoint])) as session:
         def on_ros(name: str):
-            return lambda sample: received[name].append(
-                (decoders[name](sample.payload.to_bytes()), Attachment.from_bytes(sample.attachment.to_bytes()),
-                 str(sample.key_expr)))
+            return lambda sample: keep(name, (decoders[name](sample.payload.to_bytes()),
+                                              Attachment.from_bytes(sample.attachment.to_bytes()), str(sample.key_expr)))
 
         subscribers = [session.declare_subscriber(f"{DOMAIN}/robot9/{name}/**", on_ros(name))
                        for name in ("plan", "cmd_vel")]
-        subscribers += [session.declare_subscriber(key(PREFIX, topic), lambda s, topic=topic: received[topic].append(
-            decode(models[topic], s.payload.to_bytes()))) for topic in models]
-        subscribers.append(session.declare_subscriber(status_key(PREFIX, ROS2.name), lambda s: received["status"].append(
-            decode(StageStatus, s.payload.to_bytes()))))
+        def on_json(name: str, model):
+            return lambda sample: keep(name, decode(model, sample.payload.to_bytes()))
+
+        subscribers += [session.declare_subscriber(key(PREFIX, topic), on_json(topic, model))
+                        for topic, model in models.items()]
+        subscribers.append(session.declare_subscriber(status_key(PREFIX, ROS2.name), on_json("status", StageStatus)))
         tokens = {stage: session.liveliness().declare_token(alive_key(PREFIX, stage)) for stage in PIPELINE}
         node = RosNode(session, name="robot_base", namespace="robot9", domain_id=DOMAIN)
         publishers = {name: node.publisher(topic=topic.name, msgtype=topic.msgtype, type_hash=topic.type_hash,
@@ -113,8 +129,8 @@ def robot() -> Iterator[Robot]:
                       for name, topic in BRIDGE_TOPICS.items() if topic.direction == "in"}
         thread.start()
         assert ready.wait(WAIT_S)
-        robot = Robot(session=session, node=node, publishers=publishers, received=received, stop=stop, thread=thread,
-                      stage_tokens=tokens)
+        robot = Robot(session=session, node=node, publishers=publishers, received=received, arrivals=arrivals,
+                      stop=stop, thread=thread, stage_tokens=tokens)
         wait_graph(session, lambda entities: any(e.node_name == "cvxnav_bridge" and e.topic == "/robot9/odom"
                                                  for e in entities))
         time.sleep(0.3)  # the bridge's subscriptions reach the robot's publishers
@@ -157,12 +173,17 @@ def path_to_the_goals(*, scan_seq: int, plan_id: int = 1) -> SmoothPath:
 
 
 def publish_path(robot: Robot, message: SmoothPath) -> None:
-    robot.session.put(key(PREFIX, "smooth_path"), message.model_dump_json(),
-                      encoding=zenoh.Encoding(SmoothPath.encoding()))
+    """The pipeline's answer to a scan: the ellipsoid stage's (no obstacles), then the smoother's."""
+    empty = Ellipsoids(header=message.header, scan_seq=message.scan_seq, inflation_m=SCENARIO.inflation_m,
+                       ellipsoids=[])
+    for topic, answer in (("ellipsoids", empty), ("smooth_path", message)):
+        robot.session.put(key(PREFIX, topic), answer.model_dump_json(), encoding=zenoh.Encoding(answer.encoding()))
 
 
 def scan_and_plan(robot: Robot, *, t_s: float, plan_id: int = 1) -> object:
-    """A scan of nothing (every ray no return), the pipeline's path for it; the /plan the bridge publishes."""
+    """Odometry and a scan of nothing (every ray no return), the pipeline's path for it; the /plan the
+    bridge publishes. (The odometry keeps the watchdog, which drops the path, quiet meanwhile.)"""
+    robot.odom(t_s=t_s)
     scans, plans = robot.count("scan"), robot.count("plan")
     robot.put("scan", laser_scan(np.full(SCENARIO.sensor.rays, np.inf), t_s=t_s, angle_min=-math.pi / 2,
                                  angle_increment=math.pi / SCENARIO.sensor.rays))
@@ -197,8 +218,8 @@ def test_the_bridge_is_a_ros_node_that_turns_the_robots_topics_into_the_pipeline
     # A scan becomes the pipeline's; the pipeline's verified path becomes /plan, stamped with the scan.
     robot.put("scan", laser_scan([2.0, 2.0], t_s=100.05, angle_min=0.0, angle_increment=0.1))
     scan = robot.wait("scan")
-    np.testing.assert_allclose(scan.points, [(2 * math.cos(a), 2 * math.sin(a)) for a in (math.pi / 4, math.pi / 4 + 0.1)],
-                               atol=1e-6)
+    angles = (math.pi / 4, math.pi / 4 + 0.1)
+    np.testing.assert_allclose(scan.points, [(2 * math.cos(a), 2 * math.sin(a)) for a in angles], atol=1e-6)
     plan, _, plan_key = scan_and_plan(robot, t_s=100.1)
     assert plan_key.startswith(f"{DOMAIN}/robot9/plan/nav_msgs::msg::dds_::Path_/RIHS01_")
     assert plan.header.frame_id == "odom" and (plan.header.stamp.sec, plan.header.stamp.nanosec) == (100, 100_000_000)
