@@ -35,17 +35,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import (
-    Clusters,
-    Ellipsoids,
-    Goals,
-    RawPath,
-    RobotState,
-    Scan,
-    SmoothPath,
-    StageStatus,
-    World,
-)
+from schemas.messages import Clusters, Ellipsoids, Goals, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
 from schemas.scenario import Scenario
 from services.contract import Outputs
 from services.monitor.shapes import circle_outline, closed, ellipse_outline, footprint_outline

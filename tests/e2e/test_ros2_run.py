@@ -40,6 +40,7 @@ from services.ros2.interface import BRIDGE_NODE, BRIDGE_TOPICS
 from services.ros2.wire import EntityKind, parse_token
 from services.shell.ros2 import Attachment, RosNode
 from services.shell.zenoh_config import build_zenoh_config
+from stage_processes import stage_pids
 
 ACES = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
 PREFIX = default_prefix()
@@ -118,20 +119,6 @@ def robot_graph(tmp_path: Path) -> Iterator[tuple[str, Graph]]:
         stop_processes([router], grace_s=5.0)
 
 
-def children(pid: int) -> dict[str, int]:
-    """A `cvxnav run`'s stage processes (`python -m cvxnav service NAME ...`) by name."""
-    found = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
-        except (OSError, IndexError, ValueError):
-            continue
-        if parent == pid and b"service" in argv:
-            found[argv[argv.index(b"service") + 1].decode()] = int(stat.parent.name)
-    return found
-
-
 def alive(pid: int) -> bool:
     try:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
@@ -159,7 +146,7 @@ def run_ros2(scenario: Path | None, *, endpoint: str, graph: Graph, cwd: Path) -
 
 def stop_run(process: subprocess.Popen, *, cwd: Path) -> tuple[int, str]:
     """SIGTERM the run, as a service manager would: its exit code and output; every stage must be gone."""
-    stages = children(process.pid)
+    stages = stage_pids(process.pid)
     assert set(stages) == {*PIPELINE, ROS2.name}
     process.send_signal(signal.SIGTERM)
     code = process.wait(timeout=60)
@@ -265,7 +252,7 @@ def test_bad_robot_input_is_an_error_on_the_bridges_status_key_and_the_robot_bra
     scenario = bundled_scenario()  # the robot stands at the start; its laser sees nothing: plans run to the goals
     with robot_graph(tmp_path) as (endpoint, graph), run_ros2(None, endpoint=endpoint, graph=graph,
                                                               cwd=tmp_path) as run:
-        bridge_pid = children(run.pid)[ROS2.name]
+        bridge_pid = stage_pids(run.pid)[ROS2.name]
         node = RosNode(graph.session, name="robot_base")
         publishers = {name: node.publisher(topic=t.name, msgtype=t.msgtype, type_hash=t.type_hash, qos=t.qos)
                       for name, t in BRIDGE_TOPICS.items() if t.direction == "in"}
@@ -316,7 +303,7 @@ def test_bad_robot_input_is_an_error_on_the_bridges_status_key_and_the_robot_bra
             first = graph.of("cmd_vel")[commands][1]
             assert (first.linear.x, first.angular.z) == (0.0, 0.0)  # braking at once, before any odometry
         drive_until_moving()
-        assert children(run.pid)[ROS2.name] == bridge_pid  # the same bridge, never restarted
+        assert stage_pids(run.pid)[ROS2.name] == bridge_pid  # the same bridge, never restarted
         node.close()
         code, log = stop_run(run, cwd=tmp_path)
     assert code == 0, log[-3000:]
