@@ -49,7 +49,7 @@ from services.ros2.interface import BRIDGE_TOPICS, MAX_MAP_CELLS
 from services.ros2.wire import node_namespace, resolve_topic, topic_key
 
 _SCANS_KEPT = 256  # recent scans' stamps and receive times, by seq (the paths that answer them)
-_ODOMETRY_KEPT = 256  # recent odometry, to place a scan with the pose nearest it in time
+_ODOMETRY_KEPT = 256  # recent odometry, to place a scan at the pose of its stamp
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class BridgeConfig:
     inflation_m: float
     keep_out_m: float
     stale_after_s: float = 1.5  # robot time: a plan answering an older scan is not followed
-    max_pose_age_s: float = 0.5  # a scan is placed with odometry at most this far from it in time
+    max_pose_age_s: float = 0.5  # a scan is placed with odometry at most this far from it in time, and waits as long
     # Receive clock: a path waits for the ellipses of every scan received this long before (half a second,
     # less a tenth for the network between the robot's other nodes and the bridge).
     guard_window_s: float = 0.4
@@ -125,7 +125,7 @@ class _Odometry:
 
 @dataclass(frozen=True)
 class _Waiting:
-    """A scan not yet placed: no odometry near its stamp has arrived yet."""
+    """A scan not yet placed: the odometry from after its stamp has not arrived yet."""
 
     message: object
     stamp_s: float
