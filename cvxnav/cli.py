@@ -46,16 +46,19 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 def _cmd_service(args: argparse.Namespace) -> int:
     from cvxnav.service import serve
     from cvxnav.stages import RunError
-    from schemas.wiring import MONITOR, SIM, default_prefix
+    from schemas.wiring import MONITOR, ROS2, SIM, default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
     from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args
 
     scenario = _load(args.scenario)
+    if args.name == ROS2.name:
+        _join_ros_graph(args)
     options = {
         SIM.name: dict(realtime=args.realtime, time_limit_s=args.time_limit_s, noise_std_m=args.noise_std_m,
                        seed=args.seed),
         MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
+        ROS2.name: dict(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace)),
     }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
@@ -70,9 +73,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     import time
 
     from cvxnav.stages import RunError, load_stages
-    from cvxnav.supervisor import PipelineError, RunOptions, prepare_tls, run_pipeline, summary
+    from cvxnav.supervisor import PipelineError, RobotOptions, RunOptions, prepare_tls, run_pipeline, summary
 
     scenario = _load(args.scenario)
+    robot = None
+    if args.ros2:
+        if args.tls:
+            raise CliError("--ros2 cannot run under --tls: the bridge joins the robot's rmw_zenohd, which the run's "
+                           "access control does not cover")
+        robot = RobotOptions(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace))
+        args.connect = args.connect or [ROS2_ROUTER]
     try:
         stages = load_stages(args.stages)
         options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
@@ -80,11 +90,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
-                             record_messages=args.record_messages)
+                             record_messages=args.record_messages, robot=robot)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
         raise CliError(str(error)) from None
+    if robot is not None:
+        return _run_robot(options, scenario=scenario)
     started = time.monotonic()
     try:
         code, result, restarts = run_pipeline(options=options, scenario=scenario)
@@ -96,6 +108,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return code
     print(summary(result, wall_s=time.monotonic() - started, out_path=args.out, restarts=restarts))
     return code
+
+
+def _run_robot(options, *, scenario) -> int:
+    """`cvxnav run --ros2`: until SIGINT/SIGTERM, then every process stopped; 0, or 4 if the pipeline failed."""
+    import threading
+
+    from cvxnav.supervisor import PipelineError, run_robot
+    from services.shell.stage import install_signal_handlers
+
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    robot = options.robot
+    print(f"{scenario.name}: driving the ROS 2 robot on domain {robot.domain_id}, namespace {robot.namespace}, via "
+          f"{', '.join(options.connect)}; Ctrl-C stops", file=sys.stderr, flush=True)
+    try:
+        run = run_robot(options=options, scenario=scenario, stop_event=stop)
+    except PipelineError as error:
+        print(f"cvxnav: error: {error}", file=sys.stderr)
+        return EXIT_TIMEOUT_OR_COLLISION
+    print(f"{scenario.name}: stopped after {run.wall_s:.1f} s: {run.plans} verified paths on /plan, stage restarts "
+          f"{run.restarts}")
+    return EXIT_OK
 
 
 def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
@@ -177,22 +211,32 @@ ROS2_ROUTER = "tcp/localhost:7447"  # where rmw_zenoh's sessions find the rmw_ze
 MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID ROS 2 allows
 
 
+def _ros_namespace(text: str) -> str:
+    from services.ros2.wire import RosNameError, node_namespace
+
+    try:
+        return node_namespace(text)
+    except RosNameError as error:
+        raise CliError(str(error)) from None
+
+
+def _join_ros_graph(args: argparse.Namespace) -> None:
+    """With no endpoints of its own, a process joins the ROS graph as rmw_zenoh does: the local router."""
+    if not (args.connect or args.listen or args.zenoh_config):
+        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+
+
 def _cmd_ros2_play(args: argparse.Namespace) -> int:
     import threading
 
     import zenoh
 
+    from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
     from services.shell.stage import install_signal_handlers
     from services.shell.zenoh_config import zenoh_config_from_args
-    from services.ros2.play import BagError, bag_topics, open_bag, play
-    from services.ros2.wire import RosNameError, node_namespace
 
-    try:
-        namespace = node_namespace(args.namespace)
-    except RosNameError as error:
-        raise CliError(str(error)) from None
-    if not (args.connect or args.listen or args.zenoh_config):  # join the ROS graph as rmw_zenoh does
-        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+    namespace = _ros_namespace(args.namespace)
+    _join_ros_graph(args)
     stop = threading.Event()
     install_signal_handlers(stop)
     try:
@@ -325,6 +369,13 @@ def build_parser() -> argparse.ArgumentParser:
     network.add_argument("--tls", type=Path, default=None, metavar="DIR",
                          help="mutual TLS + access control with the certificates of `cvxnav certs --out DIR`; "
                               "made there first when DIR does not exist")
+    robot = run.add_argument_group("ROS 2 robot (CONTRACTS §6)")
+    robot.add_argument("--ros2", action="store_true",
+                       help="drive a ROS 2 robot (rmw_zenoh): the bridge in the sim's place, until Ctrl-C or SIGTERM; "
+                            f"every process joins the robot's rmw_zenohd (--connect, default {ROS2_ROUTER}); the "
+                            "sim's options and --out do not apply")
+    robot.add_argument("--domain-id", type=_domain_id, default=0, help="--ros2: ROS_DOMAIN_ID of the robot's graph")
+    robot.add_argument("--namespace", default="/", help="--ros2: the robot's namespace (its topics under it)")
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")
@@ -349,6 +400,10 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--viewer", action="store_true", help="monitor: spawn a rerun viewer")
     monitor.add_argument("--viewer-url", default=None, metavar="URL",
                          help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
+    bridge = service.add_argument_group("ros2 (the ROS 2 bridge; without --connect, --listen or --config it joins "
+                                        f"rmw_zenohd at {ROS2_ROUTER} as a client)")
+    bridge.add_argument("--domain-id", type=_domain_id, default=0, help="ros2: ROS_DOMAIN_ID of the robot's graph")
+    bridge.add_argument("--namespace", default="/", help="ros2: the robot's namespace (its topics under it)")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
 

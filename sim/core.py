@@ -29,10 +29,10 @@ import numpy as np
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import Ellipsoids, Header, Pose2D, RobotState, Scan, SmoothPath
 from schemas.scenario import Scenario
-from sim.controller import GoalTracker, PurePursuit
-from sim.guard import PathGuard, ahead
+from services.drive.controller import GoalTracker, PurePursuit
+from services.drive.guard import PathGuard, ahead
+from services.drive.vehicle import VehicleLimits, VehicleState, step
 from sim.sensor import RangeSensor
-from sim.vehicle import VehicleLimits, VehicleState, step
 from sim.world import World
 
 logger = logging.getLogger(__name__)

@@ -98,7 +98,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from sim.vehicle import VehicleState  # noqa: E402
+from services.drive.vehicle import VehicleState  # noqa: E402
 from sim.world import World  # noqa: E402
 
 SCENARIOS = Path("/work/shared/scenarios")
