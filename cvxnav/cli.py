@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
-    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/1 file")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/2 (or /1) file")
     plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
     plot.add_argument("--scenario", type=Path, default=None,
                       help="the scenario file (default: the bundled paper scenario, when the file names it)")

@@ -432,7 +432,8 @@ def summary(result: RunFile, *, wall_s: float, out_path: Path, restarts: int = 0
     lat = result.latency_ms
     times, metres = result.backed_out()
     backed = f", backed out {times}x ({metres:.1f} m)" if times else ""
+    clearance = "none (no obstacle)" if result.min_clearance is None else f"{result.min_clearance:.3f} m"
     return (f"{result.scenario}: {result.status}, goals {result.goals_reached}, sim {t_end:.1f} s in "
             f"{wall_s:.1f} s wall, replans {result.replans}{backed}, stage restarts {restarts}, scan->path latency "
             f"p50 {lat.p50:.0f} / p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance "
-            f"{result.min_clearance:.3f} m -> {out_path}")
+            f"{clearance} -> {out_path}")

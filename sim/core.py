@@ -330,5 +330,5 @@ class SimCore:
             trajectory=self.trajectory,
             replans=self.replans,
             latency_ms=stats,
-            min_clearance=float(self.min_clearance_m),
+            min_clearance=float(self.min_clearance_m) if math.isfinite(self.min_clearance_m) else None,  # no obstacle
         )
