@@ -67,7 +67,7 @@ from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
 from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, SIM, STAGES, default_prefix, key
 from services.shell.peers import wait_for_stages
-from services.shell.zenoh_config import config_from_doc, endpoints_config
+from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
 
@@ -348,7 +348,11 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
                 if options.record_messages is not None else None)
     try:
-        with zenoh.open(config_from_doc(supervisor.session_doc)) as session:
+        try:
+            opened = zenoh.open(config_from_doc(supervisor.session_doc))
+        except zenoh.ZError as error:  # --listen on an address no interface has, a port in use
+            raise RunError(f"cannot open the run's Zenoh session: {zenoh_reason(error)}") from None
+        with opened as session:
             if recorder is not None:
                 recorder.subscribe(session)  # before any stage starts: the recording misses nothing
 
