@@ -17,7 +17,7 @@ import numpy as np
 
 from schemas.files import PlanFile, PlanTimings
 from schemas.scenario import OccupancyGridObstacle, Scenario
-from services.convert import ellipse_to_model
+from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
@@ -106,8 +106,14 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
     """Plan once on the scenario's known map; the result is verified or reported as `no_path`.
 
     `load_ms`: how long reading the scenario and its map took, counted in the total (`cvxnav plan` times
-    it), so that the total is the whole time from the files to the path.
+    it), so that the total is the whole time from the files to the path. The planning runs in the
+    scenario's local frame (`services.convert.LocalFrame`), the plan is moved back into the world's.
     """
+    frame = LocalFrame.of(scenario)
+    return frame.to_world(_plan_local(frame.scenario_to_local(scenario), settings=settings, load_ms=load_ms))
+
+
+def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -> PlanFile:
     clock = _Clock()
     t0 = time.perf_counter()
     raw, _ = fit_known_obstacles(scenario, settings=settings, clock=clock)

@@ -9,6 +9,7 @@ an occupancy grid (a Nav2 `map_server` map), read when the scenario is validated
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.resources
 import json
 import math
@@ -271,6 +272,10 @@ def _as_points(points: ArrayLike) -> FloatArray:
     return np.atleast_2d(np.asarray(points, dtype=float)).reshape(-1, 2)
 
 
+def _moved(points: ArrayLike, offset: FloatArray) -> list[Vec2]:
+    return [(x, y) for x, y in (_as_points(points) + offset).tolist()]
+
+
 def _hull_vertices(geom: BaseGeometry) -> FloatArray:
     """Vertices of a convex hull geometry: CCW ring for a polygon, endpoints for a segment, one point."""
     if isinstance(geom, shapely.Polygon):
@@ -329,6 +334,9 @@ class PolygonObstacle(_Frozen):
         """The convex hull, CCW: the smallest convex polygon containing the solid."""
         return _hull_vertices(self._solid.convex_hull)
 
+    def translated(self, offset: FloatArray) -> PolygonObstacle:
+        return PolygonObstacle.model_construct(vertices=_moved(self.vertices, offset))
+
 
 class CircleObstacle(_Frozen):
     """A disc; distances are analytic, so no polygonal approximation error enters the checks."""
@@ -358,6 +366,9 @@ class CircleObstacle(_Frozen):
         big = self.radius / np.cos(np.pi / circle_sides)
         return np.asarray(self.center) + big * np.column_stack([np.cos(t), np.sin(t)])
 
+    def translated(self, offset: FloatArray) -> CircleObstacle:
+        return CircleObstacle.model_construct(center=_moved([self.center], offset)[0], radius=self.radius)
+
 
 class PointsObstacle(_Frozen):
     """Sensed corner points; the solid is their convex hull (the paper's obstacle corners)."""
@@ -384,6 +395,9 @@ class PointsObstacle(_Frozen):
         if len(self.points) <= 2:
             return np.asarray(self.points, dtype=float).reshape(-1, 2)
         return _hull_vertices(self._solid)
+
+    def translated(self, offset: FloatArray) -> PointsObstacle:
+        return PointsObstacle.model_construct(points=_moved(self.points, offset))
 
 
 class OccupancyGridObstacle(_Frozen):
@@ -427,6 +441,14 @@ class OccupancyGridObstacle(_Frozen):
     def distance(self, points: ArrayLike) -> FloatArray:
         """Exact distance from each point to the nearest blocked cell (0 in one, or beyond the map)."""
         return self.grid.clearance(_as_points(points))
+
+    def translated(self, offset: FloatArray) -> OccupancyGridObstacle:
+        """The same map with its origin moved by `offset` (its file, for `map`, unchanged)."""
+        grid = self.grid
+        moved = OccupancyGridObstacle.from_grid(dataclasses.replace(
+            grid, origin_x_m=grid.origin_x_m + float(offset[0]), origin_y_m=grid.origin_y_m + float(offset[1])))
+        moved._path = self._path
+        return moved
 
 
 Obstacle = Annotated[
@@ -577,6 +599,23 @@ class Scenario(_Frozen):
     def goals_array(self) -> FloatArray:
         """Goals as an (m, 2) array, in visiting order."""
         return np.asarray(self.goals, dtype=float).reshape(-1, 2)
+
+    def translated(self, offset: ArrayLike) -> Scenario:
+        """The scenario moved by `offset` (x, y) m: bounds, start, goals and every obstacle, headings kept.
+
+        Not validated again: a translation keeps everything validation checks, and the scenario was
+        valid. Moving a far scenario to the origin (`services.convert.LocalFrame`) is exact, since x − o
+        is for x within a factor two of o (Sterbenz); moving it back rounds each coordinate once.
+        """
+        d = np.asarray(offset, dtype=float).reshape(2)
+        (lo,), (hi,) = _moved([self.bounds.min], d), _moved([self.bounds.max], d)
+        (start,) = _moved([(self.start.x, self.start.y)], d)
+        return self.model_copy(update=dict(
+            bounds=Bounds.model_construct(min=lo, max=hi),
+            start=Pose.model_construct(x=start[0], y=start[1], theta=self.start.theta),
+            goals=_moved(self.goals, d),
+            obstacles=[obstacle.translated(d) for obstacle in self.obstacles],
+        ))
 
     def clearance(self, points: ArrayLike) -> FloatArray:
         """Distance from each point to the nearest true obstacle solid (inf when there are none)."""
