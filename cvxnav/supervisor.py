@@ -351,6 +351,7 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
         try:
             opened = zenoh.open(config_from_doc(supervisor.session_doc))
         except zenoh.ZError as error:  # --listen on an address no interface has, a port in use
+            shutil.rmtree(supervisor.log_dir, ignore_errors=True)  # nothing started: nothing to look into
             raise RunError(f"cannot open the run's Zenoh session: {zenoh_reason(error)}") from None
         with opened as session:
             if recorder is not None:

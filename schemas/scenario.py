@@ -14,7 +14,9 @@ import importlib.resources
 import json
 import math
 import os
+import re
 import stat
+import sys
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -56,7 +58,6 @@ MAX_COORDINATE_M = 1e10  # |x|, |y|: float64 still resolves 2 µm there; the cor
 MAX_EXTENT_M = 10_000.0  # the bounds' side: one site, not a continent
 MAX_SIZE_M = 100.0  # the robot's dimensions, safety distance and goal tolerance
 MIN_SIZE_M = 0.01
-MAX_JSON_INT_DIGITS = 20  # longer integers are read as floats, as RFC 8259 §6 expects of interoperable JSON
 MAX_NAME_CHARS = 200
 
 Real = Annotated[float, Strict()]
@@ -145,31 +146,62 @@ def format_validation_error(err: ValidationError) -> str:
 
 
 def parse_json_model(
-    model: type[BaseModel], text: str | bytes, *, source: str, error: type[ValueError], context: dict | None = None
+    model: type[BaseModel], text: str | bytes, *, source: str, error: type[ValueError], context: dict | None = None,
+    max_items: int | None = None,
 ) -> Any:
     """Validate JSON text against `model`, turning every failure into one `error` line prefixed by `source`.
 
     The text goes through `json.loads` first so that invalid JSON is reported with line and column, and so
-    that `NaN` / `Infinity` literals reach the model and are rejected there by name. An integer of more
-    than `MAX_JSON_INT_DIGITS` digits is read as a float (inf past 1e308), so the field it is in refuses
-    it by name; nesting deeper than the parser's recursion limit is refused as such.
+    that `NaN` / `Infinity` literals reach the model and are rejected there by name. Nesting deeper than
+    the parser's recursion limit, and an integer longer than Python converts (4300 digits), are refused
+    as such; an array longer than `max_items` (the most any field of the model holds) is refused before
+    the model validates its items.
     """
     try:
-        data = json.loads(text, parse_int=_json_int)
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise error(f"{source}: invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     except UnicodeDecodeError as exc:
         raise error(f"{source}: not UTF-8 text: {exc.reason}") from None
     except RecursionError:
         raise error(f"{source}: invalid JSON: arrays or objects nested too deeply") from None
+    except ValueError:  # int() refused the digits (sys.get_int_max_str_digits)
+        raise error(f"{source}: invalid JSON: {_long_integer(text)}") from None
+    if max_items is not None:
+        where = _array_longer_than(data, max_items)
+        if where is not None:
+            raise error(f"{source}: {format_loc(where[0]) or 'top level'}: an array of {where[1]} items, more than "
+                        f"any field holds ({max_items})")
     try:
         return model.model_validate(data, context=context)
     except ValidationError as exc:
         raise error(f"{source}: {format_validation_error(exc)}") from None
 
 
-def _json_int(digits: str) -> int | float:
-    return int(digits) if len(digits.lstrip("-")) <= MAX_JSON_INT_DIGITS else float(digits)
+def _array_longer_than(data: Any, limit: int) -> tuple[tuple[str | int, ...], int] | None:
+    """Where the first array of more than `limit` items is in parsed JSON, and its length; None if none is.
+    (Iterative: a JSON document is as deep as the parser allowed.)"""
+    stack: list[tuple[tuple[str | int, ...], Any]] = [((), data)]
+    while stack:
+        loc, node = stack.pop()
+        if isinstance(node, list):
+            if len(node) > limit:
+                return loc, len(node)
+            stack += [(loc + (k,), item) for k, item in enumerate(node) if isinstance(item, (list, dict))]
+        elif isinstance(node, dict):
+            stack += [(loc + (k,), item) for k, item in node.items() if isinstance(item, (list, dict))]
+    return None
+
+
+def _long_integer(text: str | bytes) -> str:
+    """Where the integer is that has more digits than Python converts."""
+    text = text.decode("utf-8") if isinstance(text, bytes) else text
+    found = re.search(rf"\d{{{sys.get_int_max_str_digits() + 1},}}", text)
+    if found is None:
+        return f"an integer of more than {sys.get_int_max_str_digits()} digits"
+    line = text.count("\n", 0, found.start()) + 1
+    column = found.start() - text.rfind("\n", 0, found.start())
+    return f"an integer of {len(found.group())} digits at line {line} column {column}"
 
 
 def read_text(path: str | Path, *, error: type[ValueError], max_bytes: int) -> tuple[str, str]:
@@ -648,7 +680,8 @@ def _footprint_on_grid(grid: OccupancyGrid, shape: shapely.Polygon) -> bool:
 def parse_scenario(text: str | bytes, *, source: str = "<string>", base_dir: str | Path = ".") -> Scenario:
     """Validate scenario JSON text; any problem raises ScenarioError with one line naming the field. A map
     it names is read relative to `base_dir`."""
-    return parse_json_model(Scenario, text, source=source, error=ScenarioError, context={"base_dir": Path(base_dir)})
+    return parse_json_model(Scenario, text, source=source, error=ScenarioError, context={"base_dir": Path(base_dir)},
+                            max_items=max(MAX_OBSTACLES, MAX_VERTICES, MAX_GOALS))
 
 
 def load_scenario(path: str | Path) -> Scenario:
