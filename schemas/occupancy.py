@@ -26,7 +26,7 @@ FloatArray = NDArray[np.float64]
 FREE, OCCUPIED, UNKNOWN = 0, 1, 2
 STATE_NAMES = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unknown"}
 MAP_SAVER_UNKNOWN = 205  # the shade Nav2's map_saver writes for an unknown cell in trinary mode
-MAX_CELLS = 200_000_000  # larger maps are refused before their image is decoded
+MAX_CELLS = 1 << 24  # larger maps are refused before their image is decoded (docs/contracts.md)
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 MapMode = Literal["trinary", "scale", "raw"]
