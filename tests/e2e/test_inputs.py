@@ -71,14 +71,24 @@ def _paper_text_with(old: str, new: str) -> Callable[[Path], Path]:
     return _text(text.replace(old, new, 1))
 
 
+def _map_scenario(folder: Path, yaml_name: str) -> Path:
+    doc = copy.deepcopy(PAPER)
+    doc.update(format="cvxnav.scenario/2", obstacles=[{"type": "occupancy_grid", "map": yaml_name}])
+    (folder / "s.json").write_text(json.dumps(doc))
+    return folder / "s.json"
+
+
 def _huge_map(folder: Path) -> Path:
     """A map whose image header says 5000 × 5000 pixels (the pixels are never read)."""
     (folder / "huge.pgm").write_bytes(b"P5\n5000 5000\n255\n" + bytes(1000))
     (folder / "huge.yaml").write_text("image: huge.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n")
-    doc = copy.deepcopy(PAPER)
-    doc.update(format="cvxnav.scenario/2", obstacles=[{"type": "occupancy_grid", "map": "huge.yaml"}])
-    (folder / "s.json").write_text(json.dumps(doc))
-    return folder / "s.json"
+    return _map_scenario(folder, "huge.yaml")
+
+
+def _fifo_image(folder: Path) -> Path:
+    os.mkfifo(folder / "m.pgm")
+    (folder / "m.yaml").write_text("image: m.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n")
+    return _map_scenario(folder, "m.yaml")
 
 
 def _many_obstacles(doc: dict) -> None:
@@ -133,6 +143,10 @@ BAD: list[tuple[str, Callable[[Path], Path], str]] = [
     ("a name of two lines", _edited(lambda d: d.update(name="two\nlines")), "name: String should match pattern"),
     ("a rate of 0 Hz", _edited(lambda d: d["sensor"].update(rate_hz=0)), "sensor.rate_hz: Input should be greater than or equal to 0.1"),
     ("a FIFO", _fifo, "not a regular file (a FIFO, socket or device)"),
+    ("a FIFO as the map's image", _fifo_image,
+     "obstacles[0].map: m.yaml: image: m.pgm: not a regular file (a FIFO, socket, device or directory)"),
+    ("/dev/zero as the map", lambda folder: _map_scenario(folder, "/dev/zero"),
+     "obstacles[0].map: /dev/zero: cannot read the map file: not a regular file"),
     ("a map of 25 million cells", _huge_map,
      f"obstacles[0].map: huge.yaml: image: huge.pgm: 5000 × 5000 pixels is more than the {MAX_CELLS} cells a map may have"),
 ]
