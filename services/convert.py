@@ -114,8 +114,8 @@ class LocalFrame:
     10⁶–10⁸ m, `LinAlgError` at 10⁹). So every core works in the local frame, and the edges convert:
     the shell moves each message it decodes for a core by −origin and each one the core publishes by
     +origin (`services.shell.stage`), the core is built from `scenario_to_local`, and `cvxnav plan`
-    plans the local scenario and moves the plan back (`cvxnav.plan`). Nothing a core computes depends
-    on where the origin is, so a scenario moved by 10⁶ m plans exactly as at home.
+    plans the local scenario and moves the plan back (`cvxnav.plan`). So a scenario moved by 10⁶ m
+    plans as at home: exactly, when the move loses no digit of its coordinates (docs/contracts.md).
 
     The origin is the scenario's bounds' lower corner rounded to a multiple of `FRAME_QUANTUM_M`: an
     integer, so x − origin is exact for every x within a factor two of it (Sterbenz), and 0 for every
