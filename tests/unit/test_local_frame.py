@@ -210,11 +210,17 @@ def test_a_scenario_moved_far_away_plans_exactly_as_at_home(name, offset, home_p
                                rtol=0, atol=1e-3)
 
 
+@pytest.fixture(scope="module")
+def public_plans(scenarios_dir) -> dict[str, PlanFile]:
+    return {name: plan_scenario(load_scenario(scenarios_dir / f"{name}.json")) for name in PUBLIC}
+
+
 @pytest.mark.parametrize("offset", (1e7, 1e9), ids=lambda d: f"{d:g} m")
-def test_the_public_files_moved_far_away_are_planned_as_long_and_as_clear(offset, scenarios_dir, tmp_path) -> None:
+def test_the_public_files_moved_far_away_are_planned_as_long_and_as_clear(offset, scenarios_dir, public_plans,
+                                                                          tmp_path) -> None:
     for name in PUBLIC:
         path = scenarios_dir / f"{name}.json"
-        home = plan_scenario(load_scenario(path))
+        home = public_plans[name]
         moved = load_scenario(_moved_file(path, offset, tmp_path / path.name))
         far = plan_scenario(moved)
         assert far.status == home.status == "ok", name
