@@ -44,12 +44,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _cmd_service(args: argparse.Namespace) -> int:
+    import zenoh
+
     from cvxnav.service import serve
     from cvxnav.stages import RunError
     from schemas.wiring import MONITOR, ROS2, SIM, default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
     from services.monitor.rerun import ViewerError
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     scenario = _load(args.scenario)
     if args.name == ROS2.name:
@@ -67,6 +69,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
                      max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
     except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
+    except zenoh.ZError as error:  # the session did not open: an endpoint it cannot listen on or reach
+        raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -103,6 +107,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
+    except RunError as error:  # before any stage started
+        raise CliError(str(error)) from None
     if result is None:
         print(f"{scenario.name}: timeout: the pipeline did not finish within the wall-clock guard", file=sys.stderr)
         return code
@@ -193,14 +199,13 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
     from cvxnav.status import observe
     from schemas.wiring import default_prefix
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     prefix = args.prefix or default_prefix(robot_id=args.robot_id)
     try:
         session = zenoh.open(zenoh_config_from_args(args))
     except zenoh.ZError as error:  # e.g. nothing listens at --connect, or a TLS port without --config
-        reason = str(error).split("  at ")[0]
-        raise CliError(f"cannot open a Zenoh session: {reason}") from None
+        raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
     with session:
         report = observe(session, prefix=prefix, window_s=args.window_s)
     print(report.to_json() if args.json else report.table())
@@ -233,7 +238,7 @@ def _cmd_ros2_play(args: argparse.Namespace) -> int:
 
     from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
     from services.shell.stage import install_signal_handlers
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     namespace = _ros_namespace(args.namespace)
     _join_ros_graph(args)
@@ -245,7 +250,7 @@ def _cmd_ros2_play(args: argparse.Namespace) -> int:
             try:
                 session = zenoh.open(zenoh_config_from_args(args))
             except zenoh.ZError as error:
-                raise CliError(f"cannot open a Zenoh session: {str(error).split('  at ')[0]}") from None
+                raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
             with session:
                 print(f"playing {args.bag} at {args.rate:g}x{' (loop)' if args.loop else ''} on domain "
                       f"{args.domain_id}: " + ", ".join(f"{t.topic} {t.msgtype} ({t.message_count})"
@@ -277,23 +282,34 @@ def _domain_id(text: str) -> int:
 def _cmd_router(args: argparse.Namespace) -> int:
     import threading
 
+    import zenoh
+
     from cvxnav.status import run_router
     from services.shell.stage import install_signal_handlers
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     if not args.listen and args.zenoh_config is None:
         args.listen = ["tcp/0.0.0.0:7447"]
     stop = threading.Event()
     install_signal_handlers(stop)
     ready = threading.Event()
-    thread = threading.Thread(target=run_router, kwargs=dict(session_config=zenoh_config_from_args(args),
-                                                             stop_event=stop, ready_event=ready))
+    failed: list[str] = []
+
+    def serve_router() -> None:
+        try:
+            run_router(session_config=zenoh_config_from_args(args), stop_event=stop, ready_event=ready)
+        except zenoh.ZError as error:  # e.g. an address no interface has, or a port in use
+            failed.append(zenoh_reason(error))
+
+    thread = threading.Thread(target=serve_router)
     thread.start()
     while thread.is_alive() and not ready.wait(0.1):
         pass
     if ready.is_set():
         print(f"cvxnav router listening on {', '.join(args.listen) or 'the config file endpoints'}", flush=True)
     thread.join()
+    if failed:
+        raise CliError(f"the router cannot listen: {failed[0]}")
     return EXIT_OK if ready.is_set() else EXIT_BAD_INPUT
 
 
@@ -337,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.set_defaults(handler=_cmd_plan)
 
     from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES
-    from services.shell.zenoh_config import add_zenoh_arguments
+    from services.shell.zenoh_config import add_zenoh_arguments, endpoint_argument
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
     run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
@@ -360,10 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record-messages", type=Path, default=None, metavar="FILE.mcap",
                      help="record every message of the run (key, encoding, payload, receive time) as MCAP")
     network = run.add_argument_group("zenoh")
-    network.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
+    network.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
                          help="every process of the run also connects here, e.g. a router others reach: "
                               "tcp/HOST:7447 (repeatable)")
-    network.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
+    network.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
                          help="the run (under --tls: its router) also listens here for cvxnav status or a monitor "
                               "(repeatable)")
     network.add_argument("--tls", type=Path, default=None, metavar="DIR",
@@ -443,7 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
-    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/1 file")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/2 (or /1) file")
     plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
     plot.add_argument("--scenario", type=Path, default=None,
                       help="the scenario file (default: the bundled paper scenario, when the file names it)")

@@ -74,7 +74,7 @@ from schemas.scenario import Scenario
 from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, ROS2, SIM, STAGES, default_prefix, key
 from services.ros2.bridge import BridgeConfig
 from services.shell.peers import wait_for_stages
-from services.shell.zenoh_config import config_from_doc, endpoints_config
+from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
 
@@ -374,7 +374,12 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
                 if options.record_messages is not None else None)
     try:
-        with zenoh.open(config_from_doc(supervisor.session_doc)) as session:
+        try:
+            opened = zenoh.open(config_from_doc(supervisor.session_doc))
+        except zenoh.ZError as error:  # --listen on an address no interface has, a port in use
+            shutil.rmtree(supervisor.log_dir, ignore_errors=True)  # nothing started: nothing to look into
+            raise RunError(f"cannot open the run's Zenoh session: {zenoh_reason(error)}") from None
+        with opened as session:
             if recorder is not None:
                 recorder.subscribe(session)  # before any stage starts: the recording misses nothing
 
@@ -525,7 +530,8 @@ def summary(result: RunFile, *, wall_s: float, out_path: Path, restarts: int = 0
     lat = result.latency_ms
     times, metres = result.backed_out()
     backed = f", backed out {times}x ({metres:.1f} m)" if times else ""
+    clearance = "none (no obstacle)" if result.min_clearance is None else f"{result.min_clearance:.3f} m"
     return (f"{result.scenario}: {result.status}, goals {result.goals_reached}, sim {t_end:.1f} s in "
             f"{wall_s:.1f} s wall, replans {result.replans}{backed}, stage restarts {restarts}, scan->path latency "
             f"p50 {lat.p50:.0f} / p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance "
-            f"{result.min_clearance:.3f} m -> {out_path}")
+            f"{clearance} -> {out_path}")

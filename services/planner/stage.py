@@ -43,7 +43,7 @@ from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
 from services.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
 from services.limits import Reach
-from services.planner.core import PathPlan, intersected, plan_until_verified
+from services.planner.core import PathPlan, goals_ahead, intersected, plan_until_verified
 from services.planner.refine import RefineSettings, SolverFailure, refine
 from services.smoother.core import Smoothed, smooth
 
@@ -284,7 +284,9 @@ class PlannerStage:
             raise StageInputError("every goal is already reached")
         config = self.config
         position = np.array([state.pose.x_m, state.pose.y_m])
-        goals = config.goals[goal_base:]
+        goals = goals_ahead(position, config.goals[goal_base:], tolerance_m=config.goal_tolerance_m)
+        if not len(goals):  # the sim counts them reached before it sends the state
+            raise StageInputError(f"every goal from {goal_base} on is within tolerance of the robot: reached")
         sensed = ellipses_from_msgs(message.ellipsoids)
         stack = EllipseStack.of(sensed)
         free = free_start_scales(stack, start=position, inflation_m=config.inflation_m)

@@ -21,6 +21,10 @@ rejected input publishes nothing else, so the last good outputs stand. The statu
 input's stamp (``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never
 as the verdict on a real scan.
 
+Frames: the keys carry world coordinates; a core computes in a local frame near the scenario
+(``services.convert.LocalFrame``), and the shell moves every message between the two as it hands it
+to the core and publishes what the core returns, so no core sees a coordinate of 10⁶ m.
+
 Bounds: a payload larger than ``max_payload_bytes`` (``cvxnav service --max-payload-bytes``, default
 1 MiB) is rejected before it is decoded; each core bounds what a decoded message may hold (points
 per scan, per cluster set, per path; ellipses per set; coordinates within the scenario's extent).
@@ -74,6 +78,7 @@ from services.contract import (
     TickingCore,
     Watching,
 )
+from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
 from services.shell.ros2 import BridgePorts
@@ -185,8 +190,10 @@ class _Shell:
         max_payload_bytes: int,
         clock: Callable[[], float],
         checkpoint: Checkpoint | None,
+        frame: LocalFrame = LocalFrame(),
     ) -> None:
         self._spec = spec
+        self._frame = frame
         self._core = core
         self._prefix = prefix
         self._publishers = publishers
@@ -317,7 +324,7 @@ class _Shell:
                          reason=one_line(f"{where}: {type(error).__name__}: {error}"))
             return
         for out_topic, message in messages:
-            payload = message.model_dump_json()
+            payload = self._frame.to_world(message).model_dump_json()
             self._publishers[out_topic].put(payload)
             if TOPICS[out_topic].latched:
                 self._latched[out_topic] = payload
@@ -341,7 +348,7 @@ class _Shell:
         header = getattr(message, "header", None)
         if isinstance(header, Header):
             self._input_stamp_s = header.stamp_s
-        return self._core.process(topic=topic, message=message, now_s=self._clock())
+        return self._core.process(topic=topic, message=self._frame.to_local(message), now_s=self._clock())
 
     def _checked(self, outputs: Outputs) -> tuple[list[tuple[str, BaseModel]], list[tuple[str, Raw]],
                                                   list[tuple[str, Refusal]]]:
@@ -407,6 +414,7 @@ def run_stage(
     tick_period_s: float | None = None,
     ready_event: threading.Event | None = None,
     state_dir: Path | None = None,
+    frame: LocalFrame = LocalFrame(),
 ) -> None:
     """Run ``stage`` (a process of the wiring table) with ``core`` until ``stop_event`` is set, or the
     core is done (a ``Scheduled`` source whose run ended).
@@ -414,7 +422,9 @@ def run_stage(
     The session owns every declaration; all are undeclared, and the liveliness token withdrawn,
     before this returns. A ``Scheduled`` core ticks when it asks to; another ``TickingCore`` every
     ``tick_period_s``, between inputs. ``ready_event`` is set once the process is declared. With
-    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there.
+    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there. The core
+    works in ``frame`` (built from ``frame.scenario_to_local``): every message it is handed is moved
+    into it, every one it publishes back into the world frame of the keys.
     """
     spec = PROCESSES[stage]
     checkpoint = None
@@ -433,7 +443,7 @@ def run_stage(
             session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
         )
         shell = _Shell(spec=spec, core=core, prefix=prefix, publishers=publishers, status_publisher=status_publisher,
-                       max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint)
+                       max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint, frame=frame)
         inbox = Inbox()
         queue = inbox.ring(QUEUE_CAPACITY)  # a source's or sink's inputs; a stage's statuses and liveliness
         rings = {} if spec.every_input else {topic: inbox.ring(INPUT_RING) for topic in spec.subscribes}
