@@ -17,11 +17,11 @@ import numpy as np
 
 from schemas.files import PlanFile, PlanTimings
 from schemas.scenario import OccupancyGridObstacle, Scenario
-from services.convert import ellipse_to_model
+from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
-from services.planner.core import PathPlan, plan_until_verified
+from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
@@ -75,12 +75,17 @@ def plan_on_model(
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
-    on the model every planner is handed. `route_estimate_m`, `route_keep_to`: each leg's length as a
-    coarser search found it, and where the route may go (`services.planner.core.plan_path`)."""
+    on the model every planner is handed. Goals reached at the start, or with the goal before them
+    (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
+    `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
+    route may go (`services.planner.core.plan_path`)."""
+    goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
+    if not len(goals):
+        return stay_at_start(scenario.start.xy, grown)
     problem = dict(
         start=scenario.start.xy,
         heading_rad=scenario.start.theta,
-        goals=scenario.goals_array,
+        goals=goals,
         ellipses=grown,
         bounds_min=np.array(scenario.bounds.min),
         bounds_max=np.array(scenario.bounds.max),
@@ -98,7 +103,7 @@ def plan_on_model(
             ellipses=grown,
             max_curvature=problem["max_curvature"],
             heading_rad=problem["heading_rad"],
-            goals=problem["goals"],
+            goals=scenario.goals_array,  # every goal, the dropped ones included
             goal_tolerance_m=scenario.goal_tolerance,
             bounds_min=problem["bounds_min"],
             bounds_max=problem["bounds_max"],
@@ -110,8 +115,14 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
     """Plan once on the scenario's known map; the result is verified or reported as `no_path`.
 
     `load_ms`: how long reading the scenario and its map took, counted in the total (`cvxnav plan` times
-    it), so that the total is the whole time from the files to the path.
+    it), so that the total is the whole time from the files to the path. The planning runs in the
+    scenario's local frame (`services.convert.LocalFrame`), the plan is moved back into the world's.
     """
+    frame = LocalFrame.of(scenario)
+    return frame.to_world(_plan_local(frame.scenario_to_local(scenario), settings=settings, load_ms=load_ms))
+
+
+def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -> PlanFile:
     clock = _Clock()
     t0 = time.perf_counter()
     raw, _ = fit_known_obstacles(scenario, settings=settings, clock=clock)
@@ -121,12 +132,13 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         grown = [e.grown(scenario.inflation_m) for e in raw]
 
     grids = [o for o in scenario.obstacles if isinstance(o, OccupancyGridObstacle)]
-    if grids:
+    goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
+    if grids and len(goals):
         settings = replace(settings, refine=replace(settings.refine, window_radii=settings.map_window_radii))
         cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
         found = plan_in_corridor(
             cover=cover,
-            waypoints=np.vstack([scenario.start.xy, scenario.goals_array]),
+            waypoints=np.vstack([scenario.start.xy, goals]),
             fixed=grown,
             plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
                 scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to),

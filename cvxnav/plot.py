@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.files import OutputFileError, PlanFile, RunFile
-from schemas.scenario import Scenario
+from schemas.files import MAX_OUTPUT_BYTES, RUN_FORMAT, RUN_FORMATS, OutputFileError, PlanFile, RunFile
+from schemas.scenario import Scenario, read_text
 from services.monitor.shapes import closed, ellipse_outline, footprint_outline
 
 FOOTPRINT_EVERY_S = 2.0
@@ -27,15 +27,13 @@ class PlotError(ValueError):
 def read_result(path: Path) -> PlanFile | RunFile:
     """A plan or run file, chosen by its `format` field."""
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as error:
-        raise PlotError(f"{path}: cannot read: {error.strerror}") from None
+        doc = json.loads(read_text(path, error=PlotError, max_bytes=MAX_OUTPUT_BYTES)[0])
     except json.JSONDecodeError as error:
         raise PlotError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
     kind = doc.get("format") if isinstance(doc, dict) else None
-    model = {"cvxnav.plan/1": PlanFile, "cvxnav.plan/2": PlanFile, RunFile.model_fields["format"].default: RunFile}.get(kind)
+    model = {"cvxnav.plan/1": PlanFile, "cvxnav.plan/2": PlanFile, **dict.fromkeys(RUN_FORMATS, RunFile)}.get(kind)
     if model is None:
-        raise PlotError(f"{path}: format: expected cvxnav.plan/2 (or /1) or cvxnav.run/1, got {kind!r}")
+        raise PlotError(f"{path}: format: expected cvxnav.plan/2 (or /1) or {RUN_FORMAT} (or /1), got {kind!r}")
     try:
         return model.read(path)
     except OutputFileError as error:

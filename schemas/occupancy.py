@@ -10,6 +10,7 @@ world = (x, y) + R(yaw) · grid. Beyond the map's extent nothing is known, so it
 from __future__ import annotations
 
 import math
+import stat
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,7 +27,8 @@ FloatArray = NDArray[np.float64]
 FREE, OCCUPIED, UNKNOWN = 0, 1, 2
 STATE_NAMES = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unknown"}
 MAP_SAVER_UNKNOWN = 205  # the shade Nav2's map_saver writes for an unknown cell in trinary mode
-MAX_CELLS = 200_000_000  # larger maps are refused before their image is decoded
+MAX_CELLS = 1 << 24  # larger maps are refused before their image is decoded (docs/contracts.md)
+MAX_YAML_BYTES = 1 << 20  # a map's YAML holds a handful of fields
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 MapMode = Literal["trinary", "scale", "raw"]
@@ -278,6 +280,17 @@ def _number(doc: dict, key: str, *, source: str, default: float | None = None) -
     return float(value)
 
 
+def _irregular(path: Path, *, max_bytes: int | None) -> str | None:
+    """Why `path` is not a regular file of at most `max_bytes` (a FIFO would block its reader, a device such
+    as /dev/zero never end); None when it is one."""
+    info = path.stat()
+    if not stat.S_ISREG(info.st_mode):
+        return "not a regular file (a FIFO, socket, device or directory)"
+    if max_bytes is not None and info.st_size > max_bytes:
+        return f"{info.st_size} bytes, more than the {max_bytes} a map's YAML may have"
+    return None
+
+
 def load_map(path: str | Path) -> OccupancyGrid:
     """Read a Nav2 `map_server` map: its YAML and the image it names (relative to the YAML).
 
@@ -295,6 +308,9 @@ def load_map(path: str | Path) -> OccupancyGrid:
     path = Path(path)
     source = path.name
     try:
+        reason = _irregular(path, max_bytes=MAX_YAML_BYTES)
+        if reason is not None:
+            raise MapError(f"{path}: cannot read the map file: {reason}")
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise MapError(f"{path}: no such map file") from None
@@ -331,6 +347,9 @@ def load_map(path: str | Path) -> OccupancyGrid:
     image_path = (path.parent / image_name)
     where = f"{source}: image: {image_name}"
     try:
+        reason = _irregular(image_path, max_bytes=None)  # its size is bounded by its header, below
+        if reason is not None:
+            raise MapError(f"{where}: {reason}")
         with Image.open(image_path) as image:
             width, height = image.size
             if width < 1 or height < 1:

@@ -29,6 +29,7 @@ from shapely.geometry.base import BaseGeometry
 from schemas.occupancy import OccupancyGrid
 
 FloatArray = NDArray[np.float64]
+BLOCK_PAIRS = 1 << 20  # ray-target pairs cast at once: about 8 MiB per intermediate array
 
 
 @dataclass(frozen=True)
@@ -145,9 +146,22 @@ def cast_rays_grid(grid: OccupancyGrid, *, origin: Sequence[float], angles_rad: 
 def cast_rays(*, origin: Sequence[float], angles_rad: FloatArray, targets: RayTargets,
               max_range_m: float = math.inf) -> FloatArray:
     """Distance along each ray from `origin` to the first obstacle surface; inf where nothing is hit (a
-    grid is traversed up to `max_range_m` only)."""
-    ox, oy = float(origin[0]), float(origin[1])
+    grid is traversed up to `max_range_m` only).
+
+    Rays × edges (and rays × circles) are swept in blocks of at most `BLOCK_PAIRS` pairs, so the memory
+    of a scan stays bounded whatever the sensor's rays and the world's edges (4096 × 100 000 at once
+    would be gigabytes per intermediate array).
+    """
     angles = np.asarray(angles_rad, dtype=float)
+    per_block = max(1, BLOCK_PAIRS // max(1, len(targets.edges), len(targets.circles)))
+    if len(angles) <= per_block:
+        return _cast_block(origin=origin, angles=angles, targets=targets, max_range_m=max_range_m)
+    return np.concatenate([_cast_block(origin=origin, angles=angles[k : k + per_block], targets=targets,
+                                       max_range_m=max_range_m) for k in range(0, len(angles), per_block)])
+
+
+def _cast_block(*, origin: Sequence[float], angles: FloatArray, targets: RayTargets, max_range_m: float) -> FloatArray:
+    ox, oy = float(origin[0]), float(origin[1])
     dx, dy = np.cos(angles)[:, None], np.sin(angles)[:, None]  # (n, 1)
     best = np.full(angles.shape, np.inf)
 

@@ -14,8 +14,8 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 
 from schemas.occupancy import FREE, OccupancyGrid
+from services.drive.vehicle import VehicleState, footprint
 from sim.sensor import Circle, Obstacle, RayTargets
-from sim.vehicle import VehicleState, footprint
 
 FloatArray = NDArray[np.float64]
 

@@ -13,8 +13,8 @@ import pytest
 from schemas.files import PlanFile
 from schemas.scenario import load_scenario
 from services.convert import ellipse_from_model
+from services.drive.controller import menger_curvature
 from services.geometry import polyline_length
-from sim.controller import menger_curvature
 
 PUBLIC = [
     "corner-trap",

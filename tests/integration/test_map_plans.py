@@ -14,8 +14,8 @@ from cvxnav.bench.maps import _ACES, _ACES_QUERIES, _scenario_doc
 from cvxnav.plan import plan_scenario
 from schemas.scenario import load_scenario
 from services.convert import ellipse_from_model
+from services.drive.controller import menger_curvature
 from services.geometry import polyline_length, resample_polyline
-from sim.controller import menger_curvature
 
 
 def _assert_verified(scenario, plan) -> np.ndarray:

@@ -92,7 +92,7 @@ def test_clearance_is_the_exact_distance_to_the_blocked_squares(tmp_path, yaw):
 
 def test_bounds_default_to_the_rotated_maps_extent(tmp_path):
     _write_map(tmp_path, np.full((10, 20), 254), origin=(1.0, 2.0, math.pi / 2))
-    scenario = load_scenario(_scenario(tmp_path, start={"x": 0.7, "y": 2.3, "theta": 0.0}, goals=[[0.8, 2.9]]))
+    scenario = load_scenario(_scenario(tmp_path, start={"x": 0.7, "y": 2.5, "theta": math.pi / 2}, goals=[[0.8, 2.9]]))
     np.testing.assert_allclose(scenario.bounds.min, [0.5, 2.0], atol=1e-12)
     np.testing.assert_allclose(scenario.bounds.max, [1.0, 3.0], atol=1e-12)
 

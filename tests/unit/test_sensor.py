@@ -98,7 +98,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from sim.vehicle import VehicleState  # noqa: E402
+from services.drive.vehicle import VehicleState  # noqa: E402
 from sim.world import World  # noqa: E402
 
 SCENARIOS = Path("/work/shared/scenarios")
@@ -189,3 +189,16 @@ def test_rays_through_an_occupancy_grid_stop_where_they_enter_its_first_blocked_
         np.testing.assert_allclose(traversed, exact, atol=1e-9)
         short = cast_rays_grid(grid, origin=origin, angles_rad=angles, max_range_m=0.5)
         np.testing.assert_allclose(short, np.where(exact <= 0.5, exact, np.inf), atol=1e-9)
+
+
+def test_rays_cast_in_blocks_measure_what_one_sweep_measures(monkeypatch) -> None:
+    import sim.sensor
+
+    targets = RayTargets.of([shapely.box(3.0, -0.5, 4.0, 0.5), shapely.box(-2.0, 1.0, -1.0, 3.0),
+                             Circle(center=(0.0, -3.0), radius_m=0.7)])
+    angles = np.linspace(-math.pi, math.pi, 4096, endpoint=False)
+    whole = cast_rays(origin=(0.2, 0.1), angles_rad=angles, targets=targets)
+    monkeypatch.setattr(sim.sensor, "BLOCK_PAIRS", 50)  # 50 // 8 edges: blocks of 6 rays
+    blocks = cast_rays(origin=(0.2, 0.1), angles_rad=angles, targets=targets)
+    assert np.isfinite(whole).sum() > 1000
+    np.testing.assert_array_equal(blocks, whole)

@@ -98,3 +98,11 @@ def test_an_answer_to_a_scan_it_never_sent_is_rejected():
                         input_key="k", input_stamp_s=0.0, processing_ms=1.0)
     sim.hear_status(stage="planner", status=error, now_s=0.0)
     assert sim.rejected == {0.0: "planner: boom"}
+
+
+def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():
+    scenario = bundled_scenario().model_copy(update={"goals": [(0.1, 0.0), (0.0, 0.2)]})
+    sim = SimStage.from_scenario(scenario)
+    assert sim.core.outcome == "reached" and sim.core.goals.reached_count == 2
+    result = sim.result()
+    assert result.status == "reached" and len(result.trajectory) == 1
