@@ -61,9 +61,11 @@ _CURVE_LEVEL = 1.002
 @dataclass(frozen=True)
 class CorridorSettings:
     coarse_m: float = 0.2  # side of a coarse cell (rounded to a whole number of cells)
-    slack: float = 0.05  # the corridor: coarse cells on a path at most this much longer than the shortest
+    # The corridor: coarse cells on a path at most this much longer than the shortest; above the graph's
+    # metric error (2.7 %, `_STEPS`), which a route the optimum follows may be charged.
+    slack: float = 0.03
     band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
-    near_m: float = 0.6  # ... and their ellipses within this of it planned among
+    near_m: float = 0.4  # ... and their ellipses within this of it planned among
     keep_to_corridor: bool = True  # search the route within the corridor (see `_Corridor`)
     keep_m: float = 1.5  # the corridor keeps this much round the start and goals
     max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
