@@ -212,7 +212,8 @@ class GridCover:
         mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
         # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
         # only if the wall's ellipse cannot take it within the tolerance.
-        near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
+        # (k dilations by the 8-neighbourhood are one by a (2k + 1)-square: a separable maximum filter.)
+        near = ndimage.maximum_filter(mask, size=2 * self.join_cells + 1, mode="constant", cval=False)
         labels, _ = ndimage.label(near, structure=_EIGHT)
         js, is_ = np.nonzero(mask)  # row by row, then column
         _, piece = np.unique(labels[js, is_], return_inverse=True)
