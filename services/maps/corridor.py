@@ -96,6 +96,7 @@ class CoarseGrid:
     coarse_m: float
     passable: np.ndarray = field(init=False)
     _graph: tuple[np.ndarray, sparse.csr_array] | None = field(init=False, default=None)
+    _closed: bool = field(init=False, default=False)  # cells closed since the graph's weights were set
 
     def __post_init__(self) -> None:
         res = self.grid.resolution_m
@@ -126,16 +127,23 @@ class CoarseGrid:
         close = (best < self.margin_m - res / _DIAGONAL) & self.passable[b0:b1, a0:a1]
         if close.any():
             self.passable[b0:b1, a0:a1] &= ~close
-            self._graph = None
+            self._closed = True
         return int(close.sum() if watch is None else (close & watch[b0:b1, a0:a1]).sum())
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
-        """(coarse cell of each node, the graph), rebuilt after a refinement."""
+        """(coarse cell of each node, the graph): built once; a refinement only closes cells, so the edges
+        touching a closed one are then given an infinite weight (Dijkstra relaxes none of them)."""
         if self._graph is None:
             nodes = np.flatnonzero(self.passable)
             index = np.full(self.passable.shape, -1, dtype=np.int64)
             index.flat[nodes] = np.arange(len(nodes))
             self._graph = (nodes, _grid_graph(self.passable, index, self.s))
+        elif self._closed:
+            nodes, graph = self._graph
+            shut = ~self.passable.flat[nodes]
+            rows = np.repeat(np.arange(len(nodes)), np.diff(graph.indptr))
+            graph.data[shut[rows] | shut[graph.indices]] = np.inf
+        self._closed = False
         return self._graph
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
