@@ -21,6 +21,12 @@ BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]
 coord = st.floats(-5, 5, allow_nan=False)
 
 
+def _random_ellipses(rng: np.random.Generator, count: int, *, extent: float, semi: tuple[float, float]) -> list[Ellipse]:
+    """`count` ellipses centred in [0, extent]², semi-axes drawn from `semi`, at random angles."""
+    return [Ellipse.from_axes(center=rng.uniform(0, extent, 2), semi_axes=np.sort(rng.uniform(*semi, 2))[::-1],
+                              angle_rad=rng.uniform(0, np.pi)) for _ in range(count)]
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     p=st.tuples(coord, coord),
@@ -41,11 +47,7 @@ def test_segment_test_agrees_with_dense_sampling(p, q, center, axes, angle):
 @pytest.mark.parametrize("run", [2, 16, 37])
 def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
     rng = np.random.default_rng(run)
-    ellipses = [
-        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.1, 1.5, 2))[::-1],
-                          angle_rad=rng.uniform(0, np.pi))
-        for _ in range(60)
-    ]
+    ellipses = _random_ellipses(rng, 60, extent=20.0, semi=(0.1, 1.5))
     stack = EllipseStack.of(ellipses)
     curve = 10.0 + np.cumsum(rng.normal(0.0, 0.05, (1000, 2)), axis=0)
     radii = rng.uniform(0.0, 0.3, len(curve))
@@ -60,11 +62,7 @@ def test_the_swept_broad_phase_keeps_every_pair_within_a_disc_with_the_same_leve
     phase keeps fewer pairs than the KD-tree's, every pair whose segment reaches the ellipse's bounding
     disc (so every pair at level ≤ 1), by segment then ellipse, each with the level the tree's gives it."""
     rng = np.random.default_rng(3)
-    ellipses = [
-        Ellipse.from_axes(center=rng.uniform(0, 30, 2), semi_axes=np.sort(rng.uniform(0.1, 2.0, 2))[::-1],
-                          angle_rad=rng.uniform(0, np.pi))
-        for _ in range(300)
-    ]
+    ellipses = _random_ellipses(rng, 300, extent=30.0, semi=(0.1, 2.0))
     stack = EllipseStack.of(ellipses)
     p = rng.uniform(0, 30, (1500, 2))
     q = p + rng.normal(0.0, 6.0, (1500, 2))
@@ -130,11 +128,7 @@ def test_trig_roots_are_every_real_angle_of_each_polynomial():
 
 def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     rng = np.random.default_rng(3)
-    ellipses = [
-        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.3, 1.5, 2))[::-1],
-                          angle_rad=rng.uniform(0, np.pi))
-        for _ in range(60)
-    ]
+    ellipses = _random_ellipses(rng, 60, extent=20.0, semi=(0.3, 1.5))
     stack = EllipseStack.of(ellipses)
     p, q = rng.uniform(-1, 21, (2000, 2)), rng.uniform(-1, 21, (2000, 2))
     sure = DeepCells(stack).blocked(p, q)
