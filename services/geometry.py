@@ -349,32 +349,6 @@ class EllipseStack:
         rows, cols = self.near_pairs(0.5 * (p + q), 0.5 * np.linalg.norm(q - p, axis=1) + sag, run=run)
         return rows, cols, self._pair_segment_levels(p, q, rows, cols) - sag[rows] * self.stretch[cols]
 
-    def segment_pairs_swept(self, starts: ArrayLike, ends: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """(segment, ellipse, level) for every pair whose segment comes within the ellipse's bounding disc,
-        by segment then ellipse: the broad phase tests each segment against every disc exactly, in blocks.
-        For long segments among a few hundred ellipses (a route's tangents along a building's walls) that
-        keeps a quarter of the pairs the KD-tree's disc round each segment does, in less time; the pairs
-        it leaves out have the segment outside the disc, so at a level above 1."""
-        p = np.atleast_2d(np.asarray(starts, dtype=float))
-        q = np.atleast_2d(np.asarray(ends, dtype=float))
-        c, reach = self.centers, self.reach
-        rows, cols = [], []
-        for lo in range(0, len(p), _SWEEP_BLOCK):
-            a, d = p[lo : lo + _SWEEP_BLOCK], q[lo : lo + _SWEEP_BLOCK] - p[lo : lo + _SWEEP_BLOCK]
-            ex, ey = c[None, :, 0] - a[:, 0, None], c[None, :, 1] - a[:, 1, None]
-            dd = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-            t = np.clip((ex * d[:, 0, None] + ey * d[:, 1, None]) / np.where(dd > 0.0, dd, 1.0)[:, None], 0.0, 1.0)
-            wx, wy = ex - t * d[:, 0, None], ey - t * d[:, 1, None]
-            i, j = np.nonzero(wx * wx + wy * wy <= reach * reach)
-            rows.append(i + lo)
-            cols.append(j)
-        rows = np.concatenate(rows) if rows else np.zeros(0, dtype=np.intp)
-        cols = np.concatenate(cols) if cols else np.zeros(0, dtype=np.intp)
-        return rows, cols, self._pair_segment_levels(p, q, rows, cols)
-
-
-_SWEEP_BLOCK = 1024  # segments tested against every ellipse at once by `segment_pairs_swept`
-
 
 @lru_cache(maxsize=64)
 def _unit_circle(n: int) -> FloatArray:

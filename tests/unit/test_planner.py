@@ -57,32 +57,6 @@ def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
         assert np.array_equal(got, expected)
 
 
-def test_the_swept_broad_phase_keeps_every_pair_within_a_disc_with_the_same_levels():
-    """Segments metres long among 300 ellipses (and a short one, and one of length zero): the swept broad
-    phase keeps fewer pairs than the KD-tree's, every pair whose segment reaches the ellipse's bounding
-    disc (so every pair at level ≤ 1), by segment then ellipse, each with the level the tree's gives it."""
-    rng = np.random.default_rng(3)
-    ellipses = _random_ellipses(rng, 300, extent=30.0, semi=(0.1, 2.0))
-    stack = EllipseStack.of(ellipses)
-    p = rng.uniform(0, 30, (1500, 2))
-    q = p + rng.normal(0.0, 6.0, (1500, 2))
-    q[0], q[1] = p[0], p[1] + 0.01
-    rows, cols, levels = stack.segment_pairs_swept(p, q)
-    tree_rows, tree_cols, tree_levels = stack.segment_pairs(p, q)
-    assert 0 < len(rows) < len(tree_rows) and np.all(np.diff(rows * len(stack) + cols) > 0)
-    found = dict(zip(zip(tree_rows.tolist(), tree_cols.tolist()), tree_levels.tolist()))
-    assert all(found[pair] == level for pair, level in zip(zip(rows.tolist(), cols.tolist()), levels.tolist()))
-    # Every pair the tree keeps and the sweep does not has its segment clear of the ellipse's bounding disc.
-    kept = set(zip(rows.tolist(), cols.tolist()))
-    left = np.array([k for k, pair in enumerate(zip(tree_rows.tolist(), tree_cols.tolist())) if pair not in kept])
-    i, j = tree_rows[left], tree_cols[left]
-    d = q[i] - p[i]
-    along = np.einsum("ij,ij->i", stack.centers[j] - p[i], d)
-    t = np.clip(along / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0.0, 1.0)
-    assert np.all(np.linalg.norm(p[i] + t[:, None] * d - stack.centers[j], axis=1) > stack.reach[j])
-    assert np.all(tree_levels[left] > 1.0)
-
-
 def test_intersected_names_the_crossed_ellipses():
     ellipses = [Ellipse.circle(center=[5, 0], radius=1), Ellipse.circle(center=[5, 3], radius=1)]
     assert intersected(np.array([[0.0, 0.0], [10.0, 0.0]]), ellipses).tolist() == [0]
