@@ -15,8 +15,9 @@ Out: the pipeline's ``scan`` and ``state``, and ``/plan`` (nav_msgs/Path) and ``
   with no verified path, on a plan older than `BridgeConfig.stale_after_s` (robot time), while a stage is
   down (then until a plan answers a scan sent after it is back), when the odometry falls silent
   (`tick`), and after any rejected input, until the next verified plan.
-- Every path is checked before it is followed by the sim's guard (`sim.guard.PathGuard`, the newest
-  grown ellipses) from the pose of the scan it answers, and re-checked when newer ellipses arrive.
+- Every path is checked before it is followed by the sim's guard (`sim.guard.PathGuard`: the map's
+  bounds, the robot's own scan hits, the newest grown ellipses) from the pose of the scan it answers,
+  and re-checked when a scan or newer ellipses arrive.
 
 Rejected, with a one-line reason in `BridgeOutput.error` (the bridge brakes and carries on): a key
 whose type or hash is not the topic's, malformed CDR, a scan with more rays than the scenario's sensor,
@@ -159,7 +160,8 @@ class Ros2Bridge:
         self.keys = {name: config.key(name) for name, spec in BRIDGE_TOPICS.items() if spec.direction == "in"}
         self.tracker = PurePursuit.from_limits(config.limits)
         self.goals = GoalTracker(goals=config.goals, tolerance_m=config.goal_tolerance_m)
-        self.guard = PathGuard(inflation_m=config.inflation_m, keep_out_m=config.keep_out_m)
+        self.guard = PathGuard(inflation_m=config.inflation_m, keep_out_m=config.keep_out_m,
+                               bounds_min=config.reach.bounds_min, bounds_max=config.reach.bounds_max)
         self.frame_id: str | None = None  # the odometry's frame, latched from the first message
         self.odom: _Odometry | None = None
         self.steering_rad = 0.0  # the tracker's model of the wheels, moved at the steering rate limit
@@ -238,6 +240,8 @@ class Ros2Bridge:
                                   f"({apart_s:.3f} s apart > max_pose_age_s {self.config.max_pose_age_s:g})")
         pose = self.odom.pose
         hits = scan_hits(message, pose=pose, max_range_m=self.config.max_range_m)
+        self.guard.sense(hits)
+        self._recheck("its own scan")
         seq = self.scan_seq
         self.scan_seq += 1
         self.scans[seq] = _ScanRecord(position=(pose.x_m, pose.y_m), stamp=message.header.stamp, stamp_s=stamp_s,
@@ -291,12 +295,16 @@ class Ros2Bridge:
         except StageInputError as error:
             return BridgeOutput(error=f"ellipsoids: {error}")
         self.guard.know(message)
+        self._recheck("newer obstacles")  # routine: the planner replans on the same ellipses
+        return BridgeOutput()
+
+    def _recheck(self, what: str) -> None:
+        """Brake if the rest of the path being followed fails the guard's check on what it now knows."""
         if self.path is not None and self.odom is not None:
             position = (self.odom.pose.x_m, self.odom.pose.y_m)
             reason = self.guard.check(ahead(self.path, position=position), start=position)
-            if reason is not None:  # routine: the planner replans on the same ellipses
-                self._brake(f"newer obstacles: {reason}")
-        return BridgeOutput()
+            if reason is not None:
+                self._brake(f"{what}: {reason}")
 
     def take_path(self, message: SmoothPath, *, received_s: float) -> BridgeOutput:
         """The pipeline's answer to a scan: a path to follow (published on /plan), or a reason to brake."""

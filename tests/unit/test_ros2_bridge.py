@@ -217,9 +217,11 @@ def answer(bridge: Ros2Bridge, points, *, scan_seq: int, plan_id: int = 1) -> Sm
                       points=points, max_curvature=0.0, min_level=2.0, plan_id=plan_id)
 
 
-def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float):
+def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float, ahead_rad: float = 1.5):
+    """A scan of a wall 3 m away, `ahead_rad` to the left of the heading (the default: beside the path)."""
     put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=t_s), t_s=t_s)
-    return put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=-0.1, angle_increment=0.1), t_s=t_s)
+    return put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=ahead_rad - 0.1, angle_increment=0.1),
+               t_s=t_s)
 
 
 def test_a_verified_path_is_published_on_plan_and_followed_within_the_speed_bound(bridge, scenario) -> None:
@@ -282,6 +284,16 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     assert "enters a known obstacle's ellipse (cluster 7" in refused.error and decoded(refused, "plan") == []
     backwards = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=math.pi), scan_seq=3), received_s=20.7)
     assert "against the robot's heading" in backwards.error
+    # The robot's own hits hold the path, whatever the ellipses say: a wall it sensed ahead, an empty
+    # ellipse set, a path through the wall; and a path off the map.
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.8, ahead_rad=0.0)
+    assert bridge.take_ellipsoids(Ellipsoids(header=Header(stamp_s=20.8, seq=1), scan_seq=4, inflation_m=0.65,
+                                             ellipsoids=[])).error is None
+    blind = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=4), received_s=20.9)
+    assert "from a hit of the car's own scans" in blind.error and decoded(blind, "plan") == []
+    away = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw - 1.5, length_m=80.0), scan_seq=4),
+                            received_s=20.9)
+    assert "leaves the map" in away.error
     # An answer to a scan the bridge never sent is refused.
     assert "did not send" in bridge.take_path(answer(bridge, [(0.0, 0.0), (1.0, 0.0)], scan_seq=99),
                                               received_s=21.0).error
