@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from collections import deque
 
+import numpy as np
 import pytest
 
 from cvxnav.bench.closed_loop import run_closed_loop
 from cvxnav.stages import load_factory
-from schemas.messages import Header, SmoothPath, StageStatus
+from schemas.messages import Ellipsoids, Header, Scan, SmoothPath, StageStatus
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
 from services.contract import Refusal, StageInputError
@@ -22,7 +23,8 @@ class Bus:
     """Every output handed to the wiring table's readers of its topic, in the order it was published."""
 
     def __init__(self, sim: SimStage) -> None:
-        self.cores = {SIM.name: sim, **{name: load_factory(STAGES[name].factory)(SCENARIO) for name in PIPELINE}}
+        scenario = sim.core.scenario
+        self.cores = {SIM.name: sim, **{name: load_factory(STAGES[name].factory)(scenario) for name in PIPELINE}}
         self.queue: deque = deque()
         self.refusals: list[str] = []
 
@@ -94,7 +96,132 @@ def test_an_answer_to_a_scan_it_never_sent_is_rejected():
                         points=[(0.0, 0.0), (1.0, 1.0)], max_curvature=0.0, min_level=2.0, plan_id=1)
     with pytest.raises(StageInputError, match="never sent"):
         sim.process(topic="smooth_path", message=forged, now_s=0.0)
-    error = StageStatus(header=Header(stamp_s=0.0, seq=0), stage="planner", state="error", reason="boom",
-                        input_key="k", input_stamp_s=0.0, processing_ms=1.0)
-    sim.hear_status(stage="planner", status=error, now_s=0.0)
-    assert sim.rejected == {0.0: "planner: boom"}
+
+
+def error_status(*, stage: str, stamp_s: float, reason: str = "boom") -> StageStatus:
+    return StageStatus(header=Header(stamp_s=stamp_s, seq=0), stage=stage, state="error", reason=reason,
+                       input_key="k", input_stamp_s=stamp_s, processing_ms=1.0)
+
+
+def test_a_status_counts_only_on_the_key_of_the_pipeline_stage_it_names():
+    sim = SimStage.from_scenario(SCENARIO)
+    sim.hear_status(stage="monitor", status=error_status(stage="monitor", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="operator", status=error_status(stage="planner", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="smoother", status=error_status(stage="planner", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="sim", status=error_status(stage="sim", stamp_s=0.0), now_s=0.0)
+    assert sim.rejected == {}
+    sim.hear_status(stage="planner", status=error_status(stage="planner", stamp_s=0.0), now_s=2.5)
+    assert sim.rejected == {0.0: ("planner: boom", 2.5)}
+
+
+# --------------------------------------------------------------------------- forged traffic (issue 27)
+
+FORGED_PLAN = 999_999
+
+
+def forged_path(scan: Scan, points) -> SmoothPath:
+    return SmoothPath(header=Header(stamp_s=scan.header.stamp_s, seq=0), scan_seq=scan.header.seq, status="ok",
+                      goal_index=0, points=[tuple(map(float, p)) for p in points], max_curvature=0.0, min_level=2.0,
+                      plan_id=FORGED_PLAN)
+
+
+def through_the_nearest_wall(scan: Scan) -> list[tuple[float, float]]:
+    """From the car along its heading's side to the hit nearest it and 1 m beyond: into what it sees."""
+    pose = np.array([scan.pose.x_m, scan.pose.y_m])
+    heading = np.array([np.cos(scan.pose.theta_rad), np.sin(scan.pose.theta_rad)])
+    hits = np.array(scan.points).reshape(-1, 2)
+    ahead = hits[(hits - pose) @ heading > 0.3]
+    if not len(ahead):
+        return [tuple(pose), tuple(pose + 5.0 * heading)]
+    hit = ahead[np.argmin(np.linalg.norm(ahead - pose, axis=1))]
+    beyond = hit + (hit - pose) / np.linalg.norm(hit - pose)
+    return [tuple(pose + 0.05 * k * (beyond - pose)) for k in range(21)]
+
+
+def off_the_map(scan: Scan) -> list[tuple[float, float]]:
+    pose = np.array([scan.pose.x_m, scan.pose.y_m])
+    heading = np.array([np.cos(scan.pose.theta_rad), np.sin(scan.pose.theta_rad)])
+    return [tuple(pose), tuple(pose + heading), tuple(pose + heading + (0.0, -60.0))]
+
+
+def drive_under_attack(sim: SimStage, forge) -> Bus:
+    """`drive`, with an attacker who hears every scan and answers it at once with `forge(scan)`: messages
+    (delivered to the wiring table's readers, the planner as much as the sim) and statuses (to the sim,
+    on the key it names), all before the pipeline's answer, the sim acting on them first as the shell would.
+    Each publisher's messages still arrive in the order it sent them, as over Zenoh."""
+    bus, now_s = Bus(sim), 0.0
+    for name in PIPELINE:
+        sim.stage_alive(stage=name, alive=True, now_s=now_s)
+    scans: deque[Scan] = deque()
+
+    def tick() -> None:
+        outputs = sim.tick(now_s=now_s)
+        bus.publish(outputs, now_s=now_s)
+        scans.extend(message for topic, message in outputs if topic == "scan")
+
+    while not sim.done:
+        if scans:
+            messages, statuses = forge(scans.popleft())
+            for stage, status in statuses:
+                sim.hear_status(stage=stage, status=status, now_s=now_s)
+            honest, bus.queue = bus.queue, deque()
+            bus.publish(messages, now_s=now_s)
+            while bus.queue:  # the forged messages, and what the stages make of them
+                bus.deliver(now_s=now_s)
+            bus.queue = honest
+            if sim.next_tick_s(now_s=now_s) <= now_s:
+                tick()
+            continue
+        if bus.queue:
+            bus.deliver(now_s=now_s)
+            continue
+        now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        tick()
+    return bus
+
+
+def empty_ellipsoids(scan: Scan) -> Ellipsoids:
+    return Ellipsoids(header=Header(stamp_s=scan.header.stamp_s, seq=0), scan_seq=scan.header.seq,
+                      inflation_m=SCENARIO.inflation_m, ellipsoids=[])
+
+
+def test_forged_empty_ellipses_and_forged_paths_never_move_the_car_into_a_wall_or_off_the_map():
+    """Every scan answered at once with no ellipses (to the sim and the planner alike) and a path into the
+    nearest thing the car sees, or off the map, in turn: the guard refuses each, and the pipeline's own
+    answers still take the car to both goals."""
+    sim = SimStage.from_scenario(SCENARIO)
+    routes = (through_the_nearest_wall, off_the_map)
+    bus = drive_under_attack(sim, lambda scan: ([
+        ("ellipsoids", empty_ellipsoids(scan)),
+        ("smooth_path", forged_path(scan, routes[scan.header.seq % 2](scan)))], []))
+    result = sim.result()
+    assert result.status == "reached" and result.goals_reached == len(SCENARIO.goals)
+    assert result.min_clearance >= SCENARIO.robot.safety_distance / 2.0  # the hard floor's promise
+    forged = [reason for reason in bus.refusals if f"plan {FORGED_PLAN} " in reason]
+    assert any("hit of the car's own scans" in reason for reason in forged)
+    assert any("leaves the map" in reason for reason in forged)
+    assert all("hit of the car's own scans" in reason or "leaves the map" in reason for reason in forged)
+
+
+def test_twenty_forged_error_statuses_change_nothing(shared_dir):
+    """The issue's 20 errors, one for each of the first 20 scans on the planner's key, naming it, heard
+    before the pipeline answers: the run is the honest one, to the sample."""
+    from schemas.scenario import load_scenario
+
+    scenario = load_scenario(shared_dir / "scenarios" / "wide-gap.json")
+    honest = SimStage.from_scenario(scenario)
+    drive(honest)
+    sent = []
+
+    def forge(scan: Scan):
+        if len(sent) == 20:
+            return [], []
+        sent.append(scan.header.seq)
+        return [], [("planner", error_status(stage="planner", stamp_s=scan.header.stamp_s,
+                                             reason="no path: every route blocked"))]
+
+    attacked = SimStage.from_scenario(scenario)
+    drive_under_attack(attacked, forge)
+    assert len(sent) == 20
+    assert attacked.result().status == honest.result().status == "reached"
+    assert attacked.result().trajectory == honest.result().trajectory
