@@ -250,6 +250,24 @@ def _cmd_router(args: argparse.Namespace) -> int:
     return EXIT_OK if ready.is_set() else EXIT_BAD_INPUT
 
 
+def _robot_id(text: str) -> str:
+    from schemas.wiring import check_robot_id
+
+    try:
+        return check_robot_id(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _prefix(text: str) -> str:
+    from schemas.wiring import check_prefix
+
+    try:
+        return check_prefix(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -300,7 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="sim-time limit in seconds (default: from the scenario's tour length)")
     run.add_argument("--stages", type=Path, default=None,
                      help='JSON file swapping stages: {"smoother": "module:factory" | {"command": [...]}}')
-    run.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    run.add_argument("--robot-id", type=_robot_id, default=DEFAULT_ROBOT_ID,
+                     help="key prefix is cvxnav/<robot-id>; refused if a pipeline with this id is up at --connect")
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -327,8 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     service = commands.add_parser("service", help="run one stage as a standalone process")
     service.add_argument("name", choices=list(PROCESSES), help="the stage to run (monitor: the rerun sink)")
     service.add_argument("--scenario", type=Path, default=None, help="scenario file (default: the paper's)")
-    service.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
-    service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    service.add_argument("--robot-id", type=_robot_id, default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    service.add_argument("--prefix", type=_prefix, default=None, help="key prefix (overrides --robot-id)")
     service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                          help="an alternative implementation: a factory taking the scenario")
     service.add_argument("--max-payload-bytes", type=_positive_int, default=None, metavar="N",
@@ -350,8 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     service.set_defaults(handler=_cmd_service)
 
     status = commands.add_parser("status", help="which stages are alive, their last status, message rates")
-    status.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
-    status.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    status.add_argument("--robot-id", type=_robot_id, default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    status.add_argument("--prefix", type=_prefix, default=None, help="key prefix (overrides --robot-id)")
     status.add_argument("--window-s", type=_positive_float, default=2.0, help="how long to measure rates")
     status.add_argument("--json", action="store_true", help="print JSON instead of a table")
     add_zenoh_arguments(status)
