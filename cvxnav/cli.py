@@ -85,6 +85,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     try:
         code, result, restarts = run_pipeline(options=options, scenario=scenario)
+    except RunError as error:  # e.g. the robot id is already up on the network
+        raise CliError(str(error)) from None
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
