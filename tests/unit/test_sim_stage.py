@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from collections import deque
 
-import numpy as np
 import pytest
+from attacker import FORGED_PLAN, error_status, forge
 
 from cvxnav.bench.closed_loop import run_closed_loop
 from cvxnav.stages import load_factory
-from schemas.messages import Ellipsoids, Header, Scan, SmoothPath, StageStatus
+from schemas.messages import Header, Scan, SmoothPath
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
 from services.contract import Refusal, StageInputError
@@ -98,11 +98,6 @@ def test_an_answer_to_a_scan_it_never_sent_is_rejected():
         sim.process(topic="smooth_path", message=forged, now_s=0.0)
 
 
-def error_status(*, stage: str, stamp_s: float, reason: str = "boom") -> StageStatus:
-    return StageStatus(header=Header(stamp_s=stamp_s, seq=0), stage=stage, state="error", reason=reason,
-                       input_key="k", input_stamp_s=stamp_s, processing_ms=1.0)
-
-
 def test_a_status_counts_only_on_the_key_of_the_pipeline_stage_it_names():
     sim = SimStage.from_scenario(SCENARIO)
     sim.hear_status(stage="monitor", status=error_status(stage="monitor", stamp_s=0.0), now_s=0.0)
@@ -110,39 +105,11 @@ def test_a_status_counts_only_on_the_key_of_the_pipeline_stage_it_names():
     sim.hear_status(stage="smoother", status=error_status(stage="planner", stamp_s=0.0), now_s=0.0)
     sim.hear_status(stage="sim", status=error_status(stage="sim", stamp_s=0.0), now_s=0.0)
     assert sim.rejected == {}
-    sim.hear_status(stage="planner", status=error_status(stage="planner", stamp_s=0.0), now_s=2.5)
+    sim.hear_status(stage="planner", status=error_status(stage="planner", stamp_s=0.0, reason="boom"), now_s=2.5)
     assert sim.rejected == {0.0: ("planner: boom", 2.5)}
 
 
 # --------------------------------------------------------------------------- forged traffic (issue 27)
-
-FORGED_PLAN = 999_999
-
-
-def forged_path(scan: Scan, points) -> SmoothPath:
-    return SmoothPath(header=Header(stamp_s=scan.header.stamp_s, seq=0), scan_seq=scan.header.seq, status="ok",
-                      goal_index=0, points=[tuple(map(float, p)) for p in points], max_curvature=0.0, min_level=2.0,
-                      plan_id=FORGED_PLAN)
-
-
-def through_the_nearest_wall(scan: Scan) -> list[tuple[float, float]]:
-    """From the car along its heading's side to the hit nearest it and 1 m beyond: into what it sees."""
-    pose = np.array([scan.pose.x_m, scan.pose.y_m])
-    heading = np.array([np.cos(scan.pose.theta_rad), np.sin(scan.pose.theta_rad)])
-    hits = np.array(scan.points).reshape(-1, 2)
-    ahead = hits[(hits - pose) @ heading > 0.3]
-    if not len(ahead):
-        return [tuple(pose), tuple(pose + 5.0 * heading)]
-    hit = ahead[np.argmin(np.linalg.norm(ahead - pose, axis=1))]
-    beyond = hit + (hit - pose) / np.linalg.norm(hit - pose)
-    return [tuple(pose + 0.05 * k * (beyond - pose)) for k in range(21)]
-
-
-def off_the_map(scan: Scan) -> list[tuple[float, float]]:
-    pose = np.array([scan.pose.x_m, scan.pose.y_m])
-    heading = np.array([np.cos(scan.pose.theta_rad), np.sin(scan.pose.theta_rad)])
-    return [tuple(pose), tuple(pose + heading), tuple(pose + heading + (0.0, -60.0))]
-
 
 def drive_under_attack(sim: SimStage, forge) -> Bus:
     """`drive`, with an attacker who hears every scan and answers it at once with `forge(scan)`: messages
@@ -180,20 +147,12 @@ def drive_under_attack(sim: SimStage, forge) -> Bus:
     return bus
 
 
-def empty_ellipsoids(scan: Scan) -> Ellipsoids:
-    return Ellipsoids(header=Header(stamp_s=scan.header.stamp_s, seq=0), scan_seq=scan.header.seq,
-                      inflation_m=SCENARIO.inflation_m, ellipsoids=[])
-
-
 def test_forged_empty_ellipses_and_forged_paths_never_move_the_car_into_a_wall_or_off_the_map():
     """Every scan answered at once with no ellipses (to the sim and the planner alike) and a path into the
     nearest thing the car sees, or off the map, in turn: the guard refuses each, and the pipeline's own
     answers still take the car to both goals."""
     sim = SimStage.from_scenario(SCENARIO)
-    routes = (through_the_nearest_wall, off_the_map)
-    bus = drive_under_attack(sim, lambda scan: ([
-        ("ellipsoids", empty_ellipsoids(scan)),
-        ("smooth_path", forged_path(scan, routes[scan.header.seq % 2](scan)))], []))
+    bus = drive_under_attack(sim, lambda scan: forge(scan, with_status=False))
     result = sim.result()
     assert result.status == "reached" and result.goals_reached == len(SCENARIO.goals)
     assert result.min_clearance >= SCENARIO.robot.safety_distance / 2.0  # the hard floor's promise
@@ -213,15 +172,14 @@ def test_twenty_forged_error_statuses_change_nothing(shared_dir):
     drive(honest)
     sent = []
 
-    def forge(scan: Scan):
+    def statuses_only(scan: Scan):
         if len(sent) == 20:
             return [], []
         sent.append(scan.header.seq)
-        return [], [("planner", error_status(stage="planner", stamp_s=scan.header.stamp_s,
-                                             reason="no path: every route blocked"))]
+        return [], forge(scan, with_status=True)[1]
 
     attacked = SimStage.from_scenario(scenario)
-    drive_under_attack(attacked, forge)
+    drive_under_attack(attacked, statuses_only)
     assert len(sent) == 20
     assert attacked.result().status == honest.result().status == "reached"
     assert attacked.result().trajectory == honest.result().trajectory
