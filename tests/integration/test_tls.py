@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
+from tls_clients import INTRUDER, Inbox, connect_outsiders, may_ask, may_put, may_read, open_session, table_keys
 
 from cvxnav.certs import OPERATOR, client_config, pipeline_names, router_config, write_deployment
 from cvxnav.supervisor import free_ports
@@ -27,14 +27,11 @@ from schemas.messages import Clusters, Header, Pose2D, Scan, decode
 from schemas.wiring import (
     MONITOR,
     PROCESSES,
-    TOPICS,
     alive_key,
     default_prefix,
-    every_key,
     key,
     publisher_of,
     stage_of_alive_key,
-    status_key,
 )
 
 PREFIX = default_prefix()
@@ -125,31 +122,6 @@ def test_documented_configs_match_what_certs_writes():
     assert json.loads(stage.get_json("transport/link/tls/verify_name_on_connect")) is True
 
 
-# What the wiring table says, written out independently of `cvxnav.certs.grants`.
-# A key is ("topic", name) or ("status", process name).
-def _may_put(name: str, what: tuple[str, str]) -> bool:
-    """Only the table's publisher puts a topic; only a process puts its own status."""
-    kind, which = what
-    return name == publisher_of(which) if kind == "topic" else name == which and name in PROCESSES
-
-
-def _may_read(name: str, what: tuple[str, str]) -> bool:
-    """The operator reads everything; a process reads the topics it subscribes to, and statuses if it hears them."""
-    if name == OPERATOR:
-        return True
-    spec = PROCESSES.get(name)
-    if spec is None:
-        return False
-    kind, which = what
-    return which in spec.subscribes if kind == "topic" else spec.hears_statuses
-
-
-def _latched_reader(name: str, what: tuple[str, str]) -> bool:
-    """Who may ask a latched topic's publisher for its last message: a process that subscribes to it."""
-    kind, which = what
-    return kind == "topic" and TOPICS[which].latched and name in PROCESSES and which in PROCESSES[name].subscribes
-
-
 def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment):
     """Every certificate (the pipeline's, the monitor's, the operator's, a signed outsider's) puts,
     deletes, subscribes, queries, answers queries, holds tokens, watches and asks tokens on every key
@@ -157,8 +129,7 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
     session's timeout."""
     ours, _, endpoint = deployment
     names = (*pipeline_names(), INTRUDER)
-    keys = {**{("topic", topic): key(PREFIX, topic) for topic in TOPICS},
-            **{("status", name): status_key(PREFIX, name) for name in names}}
+    keys = table_keys(PREFIX, names)
     lock = threading.Lock()
     heard: dict[tuple, set[tuple[str, str]]] = {}  # (receiver, key) -> {(kind, sender)}
     replies: dict[tuple, set[str]] = {}  # (asker, key) -> {"ok:<replier>" | "err:<payload>"}
@@ -229,10 +200,10 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
         for what in keys:
             got = heard.get((receiver, what), set()) - {("SampleKind.PUT", receiver), ("SampleKind.DELETE", "")}
             expected = {("SampleKind.PUT", sender) for sender in names
-                        if sender != receiver and _may_put(sender, what) and _may_read(receiver, what)}
+                        if sender != receiver and may_put(sender, what) and may_read(receiver, what)}
             assert got == expected, f"{receiver} on {keys[what]}"
             answers = replies.get((receiver, what), set()) - {f"ok:{receiver}"}  # its own queryable, locally
-            expected_answers = {f"ok:{publisher_of(what[1])}"} if _latched_reader(receiver, what) else set()
+            expected_answers = {f"ok:{publisher_of(what[1])}"} if may_ask(receiver, what) else set()
             assert answers - {"err:Timeout"} == expected_answers, f"{receiver} asking {keys[what]}"
     # Deletes: nobody may delete, so none arrives from another session (their payload is empty).
     # Tokens: each process's own, to those that watch (the sim) or ask (the operator), and nobody else's.
