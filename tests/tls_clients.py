@@ -102,3 +102,9 @@ def may_ask(name: str, what: tuple[str, str]) -> bool:
     """Who may ask a latched topic's publisher for its last message: a process that subscribes to it."""
     kind, which = what
     return kind == "topic" and TOPICS[which].latched and name in PROCESSES and which in PROCESSES[name].subscribes
+
+
+def may_answer(name: str, what: tuple[str, str]) -> bool:
+    """Who may answer queries on a key: a latched topic's publisher, with its last message."""
+    kind, which = what
+    return kind == "topic" and TOPICS[which].latched and name == publisher_of(which)
