@@ -14,6 +14,7 @@ from cvxnav.exits import EXIT_BY_STATUS
 from cvxnav.stages import RunError, load_factory
 from schemas.scenario import Scenario
 from schemas.wiring import PROCESSES, SIM
+from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.stage import install_signal_handlers, run_stage
 
@@ -41,12 +42,15 @@ def serve(
         raise RunError(f"unknown stage {name!r}; known: {', '.join(PROCESSES)}")
     stop = threading.Event()
     install_signal_handlers(stop)
-    core = load_factory(entry_point or PROCESSES[name].factory)(scenario, **(options or {}))
+    # A core computes near the origin, the keys carry world coordinates. A ROS 2 node's other side is the
+    # robot's own frame, so the bridge speaks world coordinates on both of its sides.
+    frame = LocalFrame() if PROCESSES[name].ros2 else LocalFrame.of(scenario)
+    core = load_factory(entry_point or PROCESSES[name].factory)(frame.scenario_to_local(scenario), **(options or {}))
     run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
-              max_payload_bytes=max_payload_bytes, state_dir=state_dir)
+              max_payload_bytes=max_payload_bytes, state_dir=state_dir, frame=frame)
     if name != SIM.name:
         return 0
-    result = core.result()
+    result = frame.to_world(core.result())
     if out_path is not None:
         result.write(out_path)
     return EXIT_BY_STATUS[result.status]

@@ -33,11 +33,11 @@ will not drive on (a `Refusal`). Two watchdogs:
   restart costs the car the restart time, never the answer timeout. Scan hits taken while the sensing
   stage was down ride along with every scan until the pipeline answers one, so the restarted stage's
   memory misses nothing the car saw (its point memory dedupes them).
-- the path check (`sim.guard`): every path, and the path being driven whenever a scan or newer ellipses
-  arrive, is checked against the map's bounds, the car's own scan hits and the newest grown ellipses
-  from the ellipsoid stage; a path that fails any is not driven. For a received path the sim says why
-  on its status key; a driven path that newer obstacles cross is routine (the planner replans on them),
-  so it is only logged.
+- the path check (`services.drive.guard`): every path, and the path being driven whenever a scan or
+  newer ellipses arrive, is checked against the map's bounds, the car's own scan hits and the newest
+  grown ellipses from the ellipsoid stage; a path that fails any is not driven. For a received path the
+  sim says why on its status key; a driven path that newer obstacles cross is routine (the planner
+  replans on them), so it is only logged.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from pathlib import Path
 import zenoh
 
 from cvxnav.certs import OPERATOR, client_config
-from schemas.wiring import PROCESSES, TOPICS, alive_key, every_key, key, publisher_of, status_key
+from schemas.wiring import PROCESSES, TOPICS, alive_key, every_key, key, publishers_of, status_key
 
 INTRUDER = "intruder"  # a name the certificates are issued for, but that access control does not list
 
@@ -82,9 +82,9 @@ def table_keys(prefix: str, names) -> dict[tuple[str, str], str]:
 
 
 def may_put(name: str, what: tuple[str, str]) -> bool:
-    """Only the table's publisher puts a topic; only a process puts its own status."""
+    """Only the table's publishers put a topic (the sim, or for a ROS 2 robot the bridge); only a process puts its own status."""
     kind, which = what
-    return name == publisher_of(which) if kind == "topic" else name == which and name in PROCESSES
+    return name in publishers_of(which) if kind == "topic" else name == which and name in PROCESSES
 
 
 def may_read(name: str, what: tuple[str, str]) -> bool:
@@ -107,4 +107,4 @@ def may_ask(name: str, what: tuple[str, str]) -> bool:
 def may_answer(name: str, what: tuple[str, str]) -> bool:
     """Who may answer queries on a key: a latched topic's publisher, with its last message."""
     kind, which = what
-    return kind == "topic" and TOPICS[which].latched and name == publisher_of(which)
+    return kind == "topic" and TOPICS[which].latched and name in publishers_of(which)

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from schemas.messages import Ellipsoids, Header, SmoothPath
 from schemas.scenario import Scenario, bundled_scenario
 from sim.core import SimConfig, SimCore
-from sim.guard import DISTANCE_TOL_M, START_SLACK, PathGuard
+from services.drive.guard import DISTANCE_TOL_M, START_SLACK, PathGuard
 
 PAPER = bundled_scenario()
 KEEP = PAPER.keep_out_m

@@ -183,3 +183,11 @@ def test_twenty_forged_error_statuses_change_nothing(shared_dir):
     assert len(sent) == 20
     assert attacked.result().status == honest.result().status == "reached"
     assert attacked.result().trajectory == honest.result().trajectory
+
+
+def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():
+    scenario = bundled_scenario().model_copy(update={"goals": [(0.1, 0.0), (0.0, 0.2)]})
+    sim = SimStage.from_scenario(scenario)
+    assert sim.core.outcome == "reached" and sim.core.goals.reached_count == 2
+    result = sim.result()
+    assert result.status == "reached" and len(result.trajectory) == 1
