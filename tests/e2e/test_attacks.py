@@ -24,7 +24,7 @@ from schemas.wiring import default_prefix, status_key
 
 pytestmark = pytest.mark.slow
 PREFIX = default_prefix()
-RUN_S = 300.0  # wall-time bound for a run on a loaded machine
+RUN_S = 600.0  # only a guard against a hung run: a lockstep run's wall time follows the machine's load
 
 
 def test_forged_traffic_on_an_open_network_never_moves_the_car_and_a_second_id_is_refused(live_run, tmp_path):

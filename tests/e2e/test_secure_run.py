@@ -53,6 +53,7 @@ PREFIX = default_prefix()
 SCENARIO = bundled_scenario()
 NAMES = (*pipeline_names(), INTRUDER)
 ROUND_S = 1.0  # between the probes' rounds of refused puts and queries
+RUN_S = 600.0  # only a guard against a hung run: a lockstep run's wall time follows the machine's load
 
 
 def _open_when_up(doc: dict, run: subprocess.Popen, *, timeout_s: float = 60.0) -> zenoh.Session:
@@ -175,7 +176,9 @@ def test_tls_run_refuses_every_pair_outside_the_wiring_table_and_forged_traffic_
         attackers = [Attacker(open_session(config(name)), prefix=PREFIX) for name in (OPERATOR, MONITOR.name)]
         sessions += [probe.session for probe in probes] + [attacker.session for attacker in attackers]
         rounds, alive = 0, set()  # the names of the tokens the operator was shown
+        deadline = time.monotonic() + RUN_S
         while run.poll() is None:
+            assert time.monotonic() < deadline, f"the run is still going after {RUN_S:g} s"
             for probe in probes:
                 probe.round()
             alive |= {stage_of_alive_key(PREFIX, str(reply.ok.key_expr))
