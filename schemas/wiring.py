@@ -40,8 +40,8 @@ from schemas.messages import Clusters, Ellipsoids, Goals, Message, RawPath, Robo
 
 DEFAULT_ROBOT_ID = "robot1"
 # A robot id is a name: one key chunk, never a pattern (`*` in a key would reach every robot's keys).
-ROBOT_ID = re.compile(r"[A-Za-z0-9_-]+")
-PREFIX = re.compile(r"[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*")
+ROBOT_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]+")
+PREFIX_PATTERN = re.compile(r"[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*")
 
 Role = Literal["stage", "source", "sink"]
 
@@ -133,14 +133,14 @@ PROCESSES: Mapping[str, StageSpec] = MappingProxyType({**STAGES, ROS2.name: ROS2
 
 def check_robot_id(robot_id: str) -> str:
     """`robot_id` if it is a name (letters, digits, `_`, `-`), else ValueError saying so."""
-    if not ROBOT_ID.fullmatch(robot_id):
+    if not ROBOT_ID_PATTERN.fullmatch(robot_id):
         raise ValueError(f"must be letters, digits, '_' or '-' (a name, not a key pattern), got {robot_id!r}")
     return robot_id
 
 
 def check_prefix(prefix: str) -> str:
     """`prefix` if it is a key of such names joined by `/`, else ValueError saying so."""
-    if not PREFIX.fullmatch(prefix):
+    if not PREFIX_PATTERN.fullmatch(prefix):
         raise ValueError(f"must be names of letters, digits, '_' or '-' joined by '/' (a key, not a pattern), "
                          f"got {prefix!r}")
     return prefix
