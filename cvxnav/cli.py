@@ -7,7 +7,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cvxnav.exits import EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_NO_PATH, EXIT_OK, EXIT_TIMEOUT_OR_COLLISION, CliError
+from cvxnav.exits import (EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_INTERRUPTED, EXIT_NO_PATH, EXIT_OK,
+                          EXIT_TIMEOUT_OR_COLLISION, CliError)
 
 
 def _load(scenario: Path | None):
@@ -48,6 +49,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
     from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args
 
+    _output_path(args.out, flag="--out")
     scenario = _load(args.scenario)
     options = {
         SIM.name: dict(realtime=args.realtime, time_limit_s=args.time_limit_s, noise_std_m=args.noise_std_m,
@@ -58,17 +60,32 @@ def _cmd_service(args: argparse.Namespace) -> int:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
                      options=options, out_path=args.out, state_dir=args.state_dir,
-                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
+                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES,
+                     stall_limit_s=args.stall_limit_s)
     except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
 
 
+def _output_path(path: Path | None, *, flag: str) -> None:
+    """Refuse an output file whose folder does not exist (or that is a folder) before anything runs."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise CliError(f"{flag} {path}: is a folder, not a file")
+    if not path.parent.is_dir():
+        raise CliError(f"{flag} {path}: folder {path.parent} does not exist")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    import signal
     import time
 
     from cvxnav.stages import RunError, load_stages
     from cvxnav.supervisor import PipelineError, RunOptions, prepare_tls, run_pipeline, summary
 
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # kill, systemd and docker stop: like Ctrl-C
+    for path, flag in ((args.out, "--out"), (args.record, "--record"), (args.record_messages, "--record-messages")):
+        _output_path(path, flag=flag)
     scenario = _load(args.scenario)
     try:
         stages = load_stages(args.stages)
@@ -77,7 +94,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
-                             record_messages=args.record_messages)
+                             record_messages=args.record_messages, keep_logs=args.keep_logs)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
@@ -88,6 +105,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
+    if result is None and code == EXIT_INTERRUPTED:
+        print(f"{scenario.name}: interrupted before the sim wrote a run file", file=sys.stderr)
+        return code
     if result is None:
         print(f"{scenario.name}: timeout: the pipeline did not finish within the wall-clock guard", file=sys.stderr)
         return code
@@ -290,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.set_defaults(handler=_cmd_plan)
 
     from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES
+    from services.shell.watchdog import STALL_LIMIT_S
     from services.shell.zenoh_config import add_zenoh_arguments
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
@@ -304,6 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--keep-logs", action="store_true",
+                     help="keep the run's folder of stage logs, configs and checkpoints (by default removed "
+                          "unless the run failed)")
     run.add_argument("--record", type=Path, default=None, metavar="FILE.rrd",
                      help="start the monitor stage and save a rerun recording")
     run.add_argument("--viewer", action="store_true", help="start the monitor stage and spawn a rerun viewer")
@@ -335,6 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="reject (and report) an input message larger than N bytes (default 1 MiB)")
     service.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
                          help="keep state that must survive a restart here (sensing: point memory; planner: plan)")
+    service.add_argument("--stall-limit-s", type=_positive_float, default=STALL_LIMIT_S, metavar="S",
+                         help="under a watchdog (NOTIFY_SOCKET, WATCHDOG_USEC: systemd or cvxnav run), stop the "
+                              f"keep-alives when one input takes longer than this (default {STALL_LIMIT_S:g})")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")
@@ -385,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
-    plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/1 file")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/2 (or /1) file")
     plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
     plot.add_argument("--scenario", type=Path, default=None,
                       help="the scenario file (default: the bundled paper scenario, when the file names it)")
@@ -421,7 +448,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

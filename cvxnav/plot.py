@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.files import OutputFileError, PlanFile, RunFile
+from schemas.files import RUN_FORMATS, OutputFileError, PlanFile, RunFile
 from schemas.scenario import Scenario
 from services.monitor.shapes import closed, ellipse_outline, footprint_outline
 
@@ -32,9 +32,9 @@ def read_result(path: Path) -> PlanFile | RunFile:
     except json.JSONDecodeError as error:
         raise PlotError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
     kind = doc.get("format") if isinstance(doc, dict) else None
-    model = {PlanFile.model_fields["format"].default: PlanFile, RunFile.model_fields["format"].default: RunFile}.get(kind)
+    model = {PlanFile.model_fields["format"].default: PlanFile, **dict.fromkeys(RUN_FORMATS, RunFile)}.get(kind)
     if model is None:
-        raise PlotError(f"{path}: format: expected cvxnav.plan/1 or cvxnav.run/1, got {kind!r}")
+        raise PlotError(f"{path}: format: expected cvxnav.plan/1 or {' or '.join(RUN_FORMATS)}, got {kind!r}")
     try:
         return model.read(path)
     except OutputFileError as error:

@@ -1,7 +1,13 @@
-"""Output files `cvxnav.plan/1` and `cvxnav.run/1` (CONTRACTS §4) as frozen pydantic models.
+"""Output files `cvxnav.plan/1` and `cvxnav.run/2` (CONTRACTS §4) as frozen pydantic models.
 
 Writers and readers share these models, so a file that `read` accepts is exactly what `write` produces:
 finite numbers, no unknown fields, the format string pinned.
+
+`cvxnav.run/2` is `cvxnav.run/1` with one more status, `interrupted`: the run was stopped (SIGINT or
+SIGTERM of `cvxnav run` or of the sim, or the death of its supervisor) before it reached an outcome;
+`cvxnav run` then exits with 130. Its `latency_ms` counts every scan sent, an unanswered one as the
+time until the next answer to it or a later scan (or until the run ended). Files in `cvxnav.run/1`
+are still read; only `cvxnav.run/2` is written.
 """
 
 from __future__ import annotations
@@ -15,7 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from schemas.scenario import FieldError, Vec2, parse_json_model, read_text
 
 PLAN_FORMAT = "cvxnav.plan/1"
-RUN_FORMAT = "cvxnav.run/1"
+RUN_FORMAT = "cvxnav.run/2"
+RUN_FORMATS = ("cvxnav.run/1", RUN_FORMAT)  # read; the newest is written
 
 _File = TypeVar("_File", bound="_OutputFile")
 
@@ -90,14 +97,20 @@ class LatencyStats(_Frozen):
 class RunFile(_OutputFile):
     """`cvxnav run` output: one trajectory row [t_s, x, y, theta] per simulation step, and the outcome."""
 
-    format: Literal["cvxnav.run/1"] = RUN_FORMAT
+    format: Literal["cvxnav.run/1", "cvxnav.run/2"] = RUN_FORMAT
     scenario: str
-    status: Literal["reached", "no_path", "timeout", "collision"]
+    status: Literal["reached", "no_path", "timeout", "collision", "interrupted"]
     goals_reached: int = Field(ge=0)
     trajectory: list[tuple[float, float, float, float]]
     replans: int = Field(ge=0)
     latency_ms: LatencyStats
     min_clearance: float
+
+    @model_validator(mode="after")
+    def _status_of_its_format(self) -> RunFile:
+        if self.status == "interrupted" and self.format == "cvxnav.run/1":
+            raise FieldError(("status",), "interrupted is a cvxnav.run/2 status")
+        return self
 
     def backed_out(self) -> tuple[int, float]:
         """How many times, and how far in all (m), the car moved against its heading: backing out of

@@ -37,7 +37,7 @@ from sim.world import World
 
 logger = logging.getLogger(__name__)
 
-Outcome = str  # "reached" | "no_path" | "timeout" | "collision"
+Outcome = str  # "reached" | "no_path" | "timeout" | "collision"; a run stopped before one is "interrupted"
 _UNHEARD_CELL_M = 0.01  # hits kept for a restarted sensing stage: one per cell of this size
 _UNHEARD_MAX = 10_000  # and at most this many (the newest), so a scan stays well under the payload cap
 _SCAN_POSES_KEPT = 256  # where the recent scans were taken (a path is checked from its scan's pose)
@@ -325,7 +325,7 @@ class SimCore:
                               max=float(lat.max())) if lat.size else LatencyStats(p50=0.0, p99=0.0, max=0.0))
         return RunFile(
             scenario=self.scenario.name,
-            status=self.outcome or "timeout",
+            status=self.outcome or "interrupted",  # stopped before the run had an outcome
             goals_reached=self.goals.reached_count,
             trajectory=self.trajectory,
             replans=self.replans,

@@ -81,8 +81,9 @@ class SimStage:
 
     def __init__(self, *, scenario: Scenario, config: SimConfig, stage_wait_s: float = 30.0,
                  latency_clock: Callable[[], float] = time.perf_counter) -> None:
-        """`latency_clock` times each scan from the moment it is sensed to its answer's arrival (run.json's
-        latency); everything else runs on the shell's `now_s`."""
+        """`latency_clock` times each scan from the moment it is first sensed to the arrival of the first
+        answer to it or to a later scan, or to the run's end if none came (run.json's latency: a stall
+        counts in full); everything else runs on the shell's `now_s`."""
         self.core = SimCore(scenario=scenario, config=config)
         self.latency_clock = latency_clock
         self.config = config
@@ -90,9 +91,10 @@ class SimStage:
         self.stage_wait_s = stage_wait_s
         self.done = False
         self.alive: set[str] = set()  # pipeline stages whose token is up
-        self.published_at: dict[int, float] = {}  # scan seq -> latency_clock when it was (last) sensed
+        self.published_at: dict[int, float] = {}  # unanswered scan seq -> latency_clock when first sensed
         self.stamps: dict[int, float] = {}  # scan seq -> its sim stamp
         self.latencies_ms: list[float] = []
+        self._ended_at: float | None = None  # latency_clock when the run stopped
         self.rejected: dict[float, str] = {}  # scan stamp -> a stage's reason it has no path for it
         self.back_at_s = -math.inf  # clock time a stage last came back
         self._started_s: float | None = None  # the first tick (the world goes out)
@@ -115,9 +117,9 @@ class SimStage:
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if isinstance(message, SmoothPath):
             self._check_answers_a_sent_scan(message.scan_seq)
-            sent = self.published_at.pop(message.scan_seq, None)
-            if sent is not None:
-                self.latencies_ms.append((self.latency_clock() - sent) * 1e3)
+            now = self.latency_clock()
+            for seq in [seq for seq in self.published_at if seq <= message.scan_seq]:  # this one and skipped ones
+                self.latencies_ms.append((now - self.published_at.pop(seq)) * 1e3)
             if self._path is None or message.scan_seq >= self._path.scan_seq:
                 self._path = message
         elif isinstance(message, Ellipsoids):
@@ -166,10 +168,14 @@ class SimStage:
         return self._realtime(now_s) if self.config.realtime else self._lockstep(now_s)
 
     def stop(self, *, now_s: float) -> Outputs:
+        self._ended_at = self.latency_clock()
         return [("state", self.core.robot_state())]  # done=True once the run is over
 
     def result(self) -> RunFile:
-        return self.core.result(latencies_ms=self.latencies_ms)
+        """The run file; a scan never answered counts in the latency until the run stopped."""
+        ended = self.latency_clock() if self._ended_at is None else self._ended_at
+        unanswered = [(ended - sent) * 1e3 for sent in self.published_at.values()]
+        return self.core.result(latencies_ms=self.latencies_ms + unanswered)
 
     # -- the loops
 
@@ -229,10 +235,11 @@ class SimStage:
                 core.no_plan(reasons[0])  # no verified path for what the car now knows: brake
                 self._end_scan(now_s, answered=True, stalled=False)
                 continue
-            if (wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S) and now_s >= wait.resend_s:
+            resend = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S
+            if resend and now_s >= wait.resend_s:
                 out += self._publish(now_s)  # routes to fresh (or restarted) peers may not have been up for it
                 wait.resend_s = now_s + RESEND_S
-            self._next_s = min(wait.deadline_s, wait.resend_s)
+            self._next_s = min(wait.deadline_s, wait.resend_s) if resend else wait.deadline_s  # no busy wait
             return out
 
     def _end_scan(self, now_s: float, *, answered: bool, stalled: bool) -> bool:
@@ -279,7 +286,7 @@ class SimStage:
 
     def _publish(self, now_s: float) -> Outputs:
         state, scan = self.core.sense()
-        self.published_at[scan.header.seq] = self.latency_clock()
+        self.published_at.setdefault(scan.header.seq, self.latency_clock())  # a re-sent scan waits since the first
         self.stamps[scan.header.seq] = scan.header.stamp_s
         return [("state", state), ("scan", scan)]
 

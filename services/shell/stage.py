@@ -41,6 +41,7 @@ from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TypeVar
 
 import zenoh
 from pydantic import BaseModel
@@ -71,6 +72,7 @@ from services.contract import (
 )
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
+from services.shell.watchdog import Progress
 
 logger = logging.getLogger(__name__)
 
@@ -161,7 +163,40 @@ def install_signal_handlers(stop_event: threading.Event) -> None:
 
 _STATUS = "\0status"  # queue tags of the inputs that are not topics
 _ALIVE = "\0alive"
-DRAIN_S = 2.0  # a stopping source or sink handles what already arrived, until quiet or this long
+DRAIN_S = 1.0  # a stopping source or sink handles what already arrived, until quiet or this long
+# After a stop, how long the process waits for its worker (a solve in progress) before it exits without
+# it: within the 2 s an operator, systemd or `docker stop` may expect, with room for the interpreter's exit.
+STOP_GRACE_S = 1.5
+T = TypeVar("T")
+
+
+def run_in_worker(work: Callable[[], T], *, stop_event: threading.Event,
+                  grace_s: float = STOP_GRACE_S) -> tuple[bool, T | None]:
+    """Run `work` in a worker thread while the calling (main) thread stays free for signals.
+
+    Returns (True, its result) once it ends, or (False, None) when it is still busy `grace_s` after
+    `stop_event` was set: a core in a long solve (native code, which a signal handler cannot
+    interrupt) must not hold the process, so the caller exits without it. An exception in `work` is
+    raised here.
+    """
+    outcome: dict[str, object] = {}
+
+    def target() -> None:
+        try:
+            outcome["result"] = work()
+        except BaseException as error:  # handed to the main thread, which raises it
+            outcome["error"] = error
+
+    worker = threading.Thread(target=target, name="stage-worker", daemon=True)
+    worker.start()
+    while worker.is_alive() and not stop_event.wait(0.1):
+        pass
+    worker.join(grace_s)
+    if worker.is_alive():
+        return False, None
+    if "error" in outcome:
+        raise outcome["error"]  # type: ignore[misc]
+    return True, outcome.get("result")  # type: ignore[return-value]
 
 
 class _Shell:
@@ -364,6 +399,7 @@ def run_stage(
     tick_period_s: float | None = None,
     ready_event: threading.Event | None = None,
     state_dir: Path | None = None,
+    progress: Progress | None = None,
 ) -> None:
     """Run ``stage`` (a process of the wiring table) with ``core`` until ``stop_event`` is set, or the
     core is done (a ``Scheduled`` source whose run ended).
@@ -371,8 +407,10 @@ def run_stage(
     The session owns every declaration; all are undeclared, and the liveliness token withdrawn,
     before this returns. A ``Scheduled`` core ticks when it asks to; another ``TickingCore`` every
     ``tick_period_s``, between inputs. ``ready_event`` is set once the process is declared. With
-    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there.
+    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there. ``progress``
+    is told when each pass of the loop begins (the heartbeat's evidence, ``services.shell.watchdog``).
     """
+    progress = progress or Progress()
     spec = PROCESSES[stage]
     checkpoint = None
     if state_dir is not None and isinstance(core, Stateful):
@@ -417,6 +455,7 @@ def run_stage(
             ready_event.set()
         periodic_s = time.monotonic()
         while not stop_event.is_set() and not shell.done:
+            progress.beat()
             until_tick_s = STOP_CHECK_S
             if shell.scheduled:
                 due_s = shell.next_tick_s()

@@ -45,7 +45,7 @@ def test_write_then_read_is_equal(tmp_path: Path, make) -> None:
     loaded = type(original).read(path)
     assert loaded == original
     data = json.loads(path.read_text())
-    assert data["format"] == {"PlanFile": "cvxnav.plan/1", "RunFile": "cvxnav.run/1"}[type(original).__name__]
+    assert data["format"] == {"PlanFile": "cvxnav.plan/1", "RunFile": "cvxnav.run/2"}[type(original).__name__]
     assert path.read_text().startswith('{\n "format"')  # indent=1
 
 
@@ -103,6 +103,18 @@ def test_wrong_format_status_and_shapes_are_named(tmp_path: Path) -> None:
     assert _bad_file(tmp_path, RunFile, lambda d: d["latency_ms"].update(p99=-1)).startswith(
         "bad.json: latency_ms.p99:"
     )
+
+
+def test_a_run_file_of_the_first_format_is_still_read_but_cannot_say_interrupted(tmp_path: Path) -> None:
+    path = tmp_path / "old.json"
+    data = json.loads(_run().model_dump_json())
+    path.write_text(json.dumps({**data, "format": "cvxnav.run/1"}))
+    assert RunFile.read(path).status == "reached"
+    assert _bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", status="interrupted")) == (
+        "bad.json: status: interrupted is a cvxnav.run/2 status")
+    interrupted = _run().model_copy(update=dict(status="interrupted"))
+    interrupted.write(path)
+    assert RunFile.read(path) == interrupted
 
 
 def test_ellipse_must_be_positive_definite(tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from schemas.messages import Header, SmoothPath, StageStatus
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
 from services.contract import Refusal, StageInputError
+from sim.core import SimConfig
 from sim.stage import SimStage
 
 SCENARIO = bundled_scenario()
@@ -98,3 +99,49 @@ def test_an_answer_to_a_scan_it_never_sent_is_rejected():
                         input_key="k", input_stamp_s=0.0, processing_ms=1.0)
     sim.hear_status(stage="planner", status=error, now_s=0.0)
     assert sim.rejected == {0.0: "planner: boom"}
+
+
+def _send_until_a_scan(sim: SimStage, bus: Bus, now_s: float) -> tuple[object, float]:
+    """Tick until the sim sends a scan; the scan (undelivered) and the clock's time."""
+    while bus.queue:
+        bus.deliver(now_s=now_s)
+    while True:
+        now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        outputs = sim.tick(now_s=now_s)
+        scans = [message for topic, message in outputs if topic == "scan"]
+        if scans:
+            return scans[-1], now_s
+        bus.publish(outputs, now_s=now_s)
+        while bus.queue:
+            bus.deliver(now_s=now_s)
+
+
+def _sensing_ok(scan) -> StageStatus:
+    return StageStatus(header=Header(stamp_s=scan.header.stamp_s, seq=0), stage="sensing", state="ok", reason="",
+                       input_key="cvxnav/robot1/scan", input_stamp_s=scan.header.stamp_s, processing_ms=5.0)
+
+
+def test_an_unanswered_scan_counts_in_the_latency_until_the_next_answer():
+    clock = [0.0]
+    sim = SimStage(scenario=SCENARIO, config=SimConfig(), latency_clock=lambda: clock[0])
+    bus, now_s = drive(sim, ticks=30)
+    lost, now_s = _send_until_a_scan(sim, bus, now_s)
+    sim.hear_status(stage="sensing", status=_sensing_ok(lost), now_s=now_s)  # received, never answered
+    sent_s = now_s
+    while True:  # until the sim gives up on it and sends the next scan
+        clock[0] = now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        outputs = sim.tick(now_s=now_s)
+        if any(topic == "scan" for topic, _ in outputs):
+            break
+    assert now_s == pytest.approx(sent_s + sim.config.answer_timeout_s)
+    bus.publish(outputs, now_s=now_s)
+    while bus.queue:
+        bus.deliver(now_s=now_s)  # the next scan answered at once, on the clock of the timeout
+    assert sim.result().latency_ms.max == pytest.approx(sim.config.answer_timeout_s * 1e3)
+
+
+def test_a_run_stopped_before_its_outcome_is_interrupted():
+    sim = SimStage.from_scenario(SCENARIO)
+    drive(sim, ticks=30)
+    sim.stop(now_s=0.0)
+    assert sim.result().status == "interrupted" and sim.result().format == "cvxnav.run/2"
