@@ -25,8 +25,9 @@ will not drive on (a `Refusal`). Two watchdogs:
   every stage is back. In lockstep the sim then stops waiting for the answer to the current scan
   (none will come) and runs on the wall clock, braking and standing, until the stage is back; so a
   restart costs the car the restart time, never the answer timeout. Scan hits taken while the sensing
-  stage was down ride along with every scan until the pipeline answers one, so the restarted stage's
-  memory misses nothing the car saw (its point memory dedupes them).
+  stage was down ride along with the following scans, as many as keep each a valid scan, until a scan
+  that carried them is answered, so the restarted stage's memory misses nothing the car saw (its point
+  memory dedupes them).
 - the path check (`sim.guard`): every path, and the path being driven whenever newer ellipses arrive,
   is checked against the newest grown ellipses from the ellipsoid stage; a path that enters one is not
   driven. For a received path the sim says why on its status key; a driven path that newer ellipses
