@@ -6,7 +6,9 @@
   an error status of any stage for that scan: then no path could be verified against what the car now
   knows, and the car brakes rather than drive on a path checked only against older obstacles.
   Sim time then depends only on the scenario and the seed, so two runs give the same trajectory, and a
-  run goes as fast as the pipeline answers.
+  run goes as fast as the pipeline answers. Scan and state are dropped, not queued, on a congested
+  link (a subscriber that stops reading must not stall the loop), so the sim sends the scan it waits
+  for again until the sensing stage reports it.
 - realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
   used whenever it arrives, as on a real robot.
 
@@ -47,7 +49,7 @@ from pydantic import BaseModel
 from schemas.files import RunFile
 from schemas.messages import Ellipsoids, SmoothPath, StageStatus
 from schemas.scenario import Scenario
-from schemas.wiring import SIM
+from schemas.wiring import SIM, subscribers_of
 from services.contract import Outputs, Refusal, StageInputError
 from services.limits import Reach
 from sim.core import SimConfig, SimCore
@@ -55,10 +57,13 @@ from sim.truth import world_message
 
 logger = logging.getLogger(__name__)
 
-# Lockstep: a scan not answered within this wall time is sent again, while routes to fresh (or
-# restarted) peers may not have been up for it: the first scan, and any within this long of a stage's return.
+# Lockstep: a scan not answered within this wall time (or twice the sensing stage's newest processing
+# time, if longer) is sent again while the sensing stage has not reported it (scan and state are
+# dropped, not queued, on a congested link), and while routes to fresh (or restarted) peers may not
+# have been up for it: the first scan, and any within this long of a stage's return.
 RESEND_S = 1.0
 REJOIN_RESEND_S = 5.0
+_SCAN_READERS = subscribers_of("scan")
 # Lockstep: the ellipses of a scan come straight from their stage, its path two stages later; a path is
 # held this long at most for them, so it is checked against the same obstacles in every run.
 ELLIPSOIDS_WAIT_S = 1.0
@@ -73,6 +78,7 @@ class _Waiting:
     started_s: float
     deadline_s: float
     resend_s: float
+    delivered: bool = False  # the sensing stage reported it: no need to send it again
     held: SmoothPath | None = None  # its answer, waiting for the scan's ellipses
     held_until_s: float = math.inf
 
@@ -107,6 +113,7 @@ class SimStage:
         self._waiting: _Waiting | None = None
         self._next_s = 0.0
         self._sleeping = False  # lockstep: standing for a stage that is down; inputs wait for the next tick
+        self._resend_after_s = RESEND_S
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, **options) -> SimStage:
@@ -146,6 +153,11 @@ class SimStage:
         if status.state == "error" and status.stage != SIM.name and status.input_stamp_s is not None:
             self.rejected[status.input_stamp_s] = f"{status.stage}: {status.reason}"
             self._heard = True
+        if status.stage in _SCAN_READERS:
+            self._resend_after_s = max(RESEND_S, 2e-3 * status.processing_ms)
+            wait, stamp_s = self._waiting, status.input_stamp_s
+            if wait is not None and stamp_s is not None and abs(stamp_s - wait.stamp_s) <= 1e-9:
+                wait.delivered = True
         return []
 
     def next_tick_s(self, *, now_s: float) -> float | None:
@@ -204,7 +216,8 @@ class SimStage:
                 seq = core.scan_seq
                 out += self._publish(now_s)
                 self._waiting = _Waiting(seq=seq, stamp_s=core.t_s, started_s=now_s,
-                                         deadline_s=now_s + self.config.answer_timeout_s, resend_s=now_s + RESEND_S)
+                                         deadline_s=now_s + self.config.answer_timeout_s,
+                                         resend_s=now_s + self._resend_after_s)
             wait = self._waiting
             if now_s >= wait.deadline_s:
                 if wait.held is not None:
@@ -236,11 +249,11 @@ class SimStage:
                 core.no_plan(reasons[0])  # no verified path for what the car now knows: brake
                 self._end_scan(now_s, answered=True, stalled=False)
                 continue
-            resend = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S
+            resend = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S or not wait.delivered
             if resend and now_s >= wait.resend_s:
-                out += self._publish(now_s)  # routes to fresh (or restarted) peers may not have been up for it
-                wait.resend_s = now_s + RESEND_S
-            self._next_s = min(wait.deadline_s, wait.resend_s) if resend else wait.deadline_s  # no busy wait
+                out += self._publish(now_s)  # dropped, or routes to fresh (or restarted) peers were not up for it
+                wait.resend_s = now_s + self._resend_after_s
+            self._next_s = min(wait.deadline_s, wait.resend_s) if resend else wait.deadline_s
             return out
 
     def _end_scan(self, now_s: float, *, answered: bool, stalled: bool) -> bool:

@@ -418,15 +418,18 @@ def run_stage(
         checkpoint.restore(core)
     with zenoh.open(session_config) as session, ExitStack() as declarations:
         declare = declarations.enter_context
+        # Every publisher drops on a congested link rather than wait: a reader that stops reading (a dead
+        # monitor link) would otherwise stall this process, and behind it the whole loop, for Zenoh's
+        # 5 s `wait_before_close`. The sim sends again the scan it waits for (``sim.stage``).
         publishers = {
             topic: declare(session.declare_publisher(
                 key(prefix, topic), encoding=zenoh.Encoding(model_for(topic).encoding()),
-                congestion_control=zenoh.CongestionControl.BLOCK if TOPICS[topic].block else zenoh.CongestionControl.DROP))
+                congestion_control=zenoh.CongestionControl.DROP))
             for topic in spec.publishes
         }
-        status_publisher = declare(
-            session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
-        )
+        status_publisher = declare(session.declare_publisher(
+            status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()),
+            congestion_control=zenoh.CongestionControl.DROP))
         shell = _Shell(spec=spec, core=core, prefix=prefix, publishers=publishers, status_publisher=status_publisher,
                        max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint)
         inbox = Inbox()

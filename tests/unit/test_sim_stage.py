@@ -121,6 +121,18 @@ def _sensing_ok(scan) -> StageStatus:
                        input_key="cvxnav/robot1/scan", input_stamp_s=scan.header.stamp_s, processing_ms=5.0)
 
 
+def test_a_lost_scan_is_sent_again_until_the_sensing_stage_reports_it():
+    sim = SimStage.from_scenario(SCENARIO)
+    bus, now_s = drive(sim, ticks=30)
+    scan, now_s = _send_until_a_scan(sim, bus, now_s)  # dropped on the way: nobody gets it
+    now_s = sim.next_tick_s(now_s=now_s)
+    again = [message for topic, message in sim.tick(now_s=now_s) if topic == "scan"]
+    assert [s.header.seq for s in again] == [scan.header.seq]  # the same scan, once the resend time came
+    sim.hear_status(stage="sensing", status=_sensing_ok(scan), now_s=now_s)  # this copy got through
+    now_s = sim.next_tick_s(now_s=now_s)
+    assert not [message for topic, message in sim.tick(now_s=now_s) if topic == "scan"]  # in the pipeline: no resend
+
+
 def test_an_unanswered_scan_counts_in_the_latency_until_the_next_answer():
     clock = [0.0]
     sim = SimStage(scenario=SCENARIO, config=SimConfig(), latency_clock=lambda: clock[0])
