@@ -30,6 +30,7 @@ from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.shell.zenoh_config import build_zenoh_config
 from sim.vehicle import VehicleLimits
+from procfs import alive
 
 PAPER = bundled_scenario()
 PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
@@ -105,14 +106,6 @@ class Kill:
     back_s: float  # sim time the restarted stage's token was seen
     replaced_after_s: float  # wall time from the signal to the new process
     back_after_s: float  # wall time from the signal to its token
-
-
-def alive(pid: int) -> bool:
-    """Whether `pid` is a process that has not exited (a zombie has)."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,6 @@ test's own, so the test sees it made and removed.
 
 from __future__ import annotations
 
-import os
 import random
 import signal
 import subprocess
@@ -29,23 +28,10 @@ from schemas.messages import ClusterMsg, Clusters, Header, RobotState, decode
 from schemas.wiring import default_prefix, key
 from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
+from procfs import alive, cpu_s
 
 PREFIX = default_prefix()
 WAIT_S = 60.0  # a guard against a hung test, not a speed requirement
-
-
-def alive(pid: int) -> bool:
-    """Whether `pid` is a process that has not exited (a zombie has)."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
-def cpu_s(pid: int) -> float:
-    """User + system CPU time of a process, in seconds (/proc/PID/stat)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def wait_for(condition: Callable[[], object], *, what: str) -> object:
