@@ -234,8 +234,18 @@ class Supervisor:
         self._restart_due: dict[str, float] = {}  # stage -> monotonic time its restart is due
         self.log_dir = Path(tempfile.mkdtemp(prefix="cvxnav-run-"))
         self.state_dir = self.log_dir / "state"
-        self.notify = NotifySocket(path=self.log_dir / "notify.sock") if watchdog_supported() else None
+        self.notify = self._notify_socket()
         self._exit_with_me = _exit_with_parent()
+
+    def _notify_socket(self) -> NotifySocket | None:
+        """Where the children send their keep-alives; None (no hang is seen) where it cannot be made."""
+        if not watchdog_supported():
+            return None
+        try:
+            return NotifySocket(path=self.log_dir / "notify.sock")
+        except OSError as error:  # e.g. a TMPDIR too long for a unix socket's path
+            logger.warning("no watchdog for this run's stages (a hang will not be seen): %s", error)
+            return None
 
     def _config_file(self, name: str) -> Path:
         path = self.log_dir / f"{name}.json5"

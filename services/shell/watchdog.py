@@ -126,8 +126,12 @@ class NotifySocket:
     def __init__(self, *, path: Path) -> None:
         self.path = path
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
-        self._sock.bind(str(path))
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
+            self._sock.bind(str(path))  # OSError for a path longer than sun_path (108 bytes)
+        except OSError:
+            self._sock.close()
+            raise
         self._sock.setblocking(False)
 
     def receive(self) -> list[tuple[int, str]]:

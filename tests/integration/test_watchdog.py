@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
 import zenoh
 
 from schemas.messages import Header, Pose2D, Scan
@@ -101,3 +102,12 @@ def test_the_watchdog_is_read_from_the_environment_as_systemd_sets_it_and_taken_
     other = {"NOTIFY_SOCKET": "/run/n.sock", "WATCHDOG_USEC": "3000000", "WATCHDOG_PID": str(os.getpid() + 1)}
     assert Watchdog.from_environment(other) is None  # the watchdog of another process
     assert Watchdog.from_environment({"NOTIFY_SOCKET": "/run/n.sock"}) is None  # notify, but no watchdog
+
+
+def test_a_socket_path_too_long_for_unix_is_an_oserror_that_leaves_no_socket_open(tmp_path: Path):
+    deep = tmp_path / ("d" * 120)  # sun_path holds 108 bytes: a long TMPDIR gives no watchdog, not a crash
+    deep.mkdir()
+    open_before = len(os.listdir("/proc/self/fd"))
+    with pytest.raises(OSError):
+        NotifySocket(path=deep / "notify.sock")
+    assert len(os.listdir("/proc/self/fd")) == open_before
