@@ -21,16 +21,19 @@ def _load(scenario: Path | None):
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
+    import time
+
     import numpy as np
 
     from cvxnav.plan import plan_scenario
     from services.geometry import polyline_length
 
-    scenario = _load(args.scenario)
-    plan = plan_scenario(scenario)
+    started = time.perf_counter()
+    scenario = _load(args.scenario)  # the scenario and any map it names: counted in the plan's time
+    plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - started))
     plan.write(args.out)
     if plan.status != "ok":
-        print(f"{scenario.name}: no path to the goals ({plan.timings_ms.total:.0f} ms) -> {args.out}")
+        print(f"{scenario.name}: no path to the goals: {plan.reason} ({plan.timings_ms.total:.0f} ms) -> {args.out}")
         return EXIT_NO_PATH
     path = np.array(plan.path)
     clearance = float(np.min(scenario.clearance(path))) if scenario.obstacles else float("inf")
@@ -42,19 +45,24 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _cmd_service(args: argparse.Namespace) -> int:
+    import zenoh
+
     from cvxnav.service import serve
     from cvxnav.stages import RunError
-    from schemas.wiring import MONITOR, SIM, default_prefix
+    from schemas.wiring import MONITOR, ROS2, SIM, default_prefix
     from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
     from services.monitor.rerun import ViewerError
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     _output_path(args.out, flag="--out")
     scenario = _load(args.scenario)
+    if args.name == ROS2.name:
+        _join_ros_graph(args)
     options = {
         SIM.name: dict(realtime=args.realtime, time_limit_s=args.time_limit_s, noise_std_m=args.noise_std_m,
                        seed=args.seed),
         MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
+        ROS2.name: dict(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace)),
     }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
@@ -64,6 +72,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
                      stall_limit_s=args.stall_limit_s)
     except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
+    except zenoh.ZError as error:  # the session did not open: an endpoint it cannot listen on or reach
+        raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
 
 
 def _output_path(path: Path | None, *, flag: str) -> None:
@@ -81,12 +91,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     import time
 
     from cvxnav.stages import RunError, load_stages
-    from cvxnav.supervisor import PipelineError, RunOptions, prepare_tls, run_pipeline, summary
+    from cvxnav.supervisor import PipelineError, RobotOptions, RunOptions, prepare_tls, run_pipeline, summary
 
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # kill, systemd and docker stop: like Ctrl-C
     for path, flag in ((args.out, "--out"), (args.record, "--record"), (args.record_messages, "--record-messages")):
         _output_path(path, flag=flag)
     scenario = _load(args.scenario)
+    robot = None
+    if args.ros2:
+        if args.tls:
+            raise CliError("--ros2 cannot run under --tls: the bridge joins the robot's rmw_zenohd, which the run's "
+                           "access control does not cover")
+        robot = RobotOptions(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace))
+        args.connect = args.connect or [ROS2_ROUTER]
     try:
         stages = load_stages(args.stages)
         options = RunOptions(scenario_path=args.scenario, out_path=args.out, realtime=args.realtime,
@@ -94,17 +111,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
-                             record_messages=args.record_messages, keep_logs=args.keep_logs)
+                             record_messages=args.record_messages, keep_logs=args.keep_logs, robot=robot)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
         raise CliError(str(error)) from None
+    if robot is not None:
+        return _run_robot(options, scenario=scenario)
     started = time.monotonic()
     try:
         code, result, restarts = run_pipeline(options=options, scenario=scenario)
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
+    except RunError as error:  # before any stage started
+        raise CliError(str(error)) from None
     if result is None and code == EXIT_INTERRUPTED:
         print(f"{scenario.name}: interrupted before the sim wrote a run file", file=sys.stderr)
         return code
@@ -113,6 +134,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return code
     print(summary(result, wall_s=time.monotonic() - started, out_path=args.out, restarts=restarts))
     return code
+
+
+def _run_robot(options, *, scenario) -> int:
+    """`cvxnav run --ros2`: until SIGINT/SIGTERM, then every process stopped; 0, or 4 if the pipeline failed."""
+    import threading
+
+    from cvxnav.supervisor import PipelineError, run_robot
+    from services.shell.stage import install_signal_handlers
+
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    robot = options.robot
+    print(f"{scenario.name}: driving the ROS 2 robot on domain {robot.domain_id}, namespace {robot.namespace}, via "
+          f"{', '.join(options.connect)}; Ctrl-C stops", file=sys.stderr, flush=True)
+    try:
+        run = run_robot(options=options, scenario=scenario, stop_event=stop)
+    except PipelineError as error:
+        print(f"cvxnav: error: {error}", file=sys.stderr)
+        return EXIT_TIMEOUT_OR_COLLISION
+    print(f"{scenario.name}: stopped after {run.wall_s:.1f} s: {run.plans} verified paths on /plan, stage restarts "
+          f"{run.restarts}")
+    return EXIT_OK
 
 
 def _monitor_args(args: argparse.Namespace) -> tuple[str, ...] | None:
@@ -176,14 +219,13 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
     from cvxnav.status import observe
     from schemas.wiring import default_prefix
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     prefix = args.prefix or default_prefix(robot_id=args.robot_id)
     try:
         session = zenoh.open(zenoh_config_from_args(args))
     except zenoh.ZError as error:  # e.g. nothing listens at --connect, or a TLS port without --config
-        reason = str(error).split("  at ")[0]
-        raise CliError(f"cannot open a Zenoh session: {reason}") from None
+        raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
     with session:
         report = observe(session, prefix=prefix, window_s=args.window_s)
     print(report.to_json() if args.json else report.table())
@@ -194,22 +236,32 @@ ROS2_ROUTER = "tcp/localhost:7447"  # where rmw_zenoh's sessions find the rmw_ze
 MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID ROS 2 allows
 
 
+def _ros_namespace(text: str) -> str:
+    from services.ros2.wire import RosNameError, node_namespace
+
+    try:
+        return node_namespace(text)
+    except RosNameError as error:
+        raise CliError(str(error)) from None
+
+
+def _join_ros_graph(args: argparse.Namespace) -> None:
+    """With no endpoints of its own, a process joins the ROS graph as rmw_zenoh does: the local router."""
+    if not (args.connect or args.listen or args.zenoh_config):
+        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+
+
 def _cmd_ros2_play(args: argparse.Namespace) -> int:
     import threading
 
     import zenoh
 
+    from cvxnav.ros2_play import BagError, bag_topics, open_bag, play
     from services.shell.stage import install_signal_handlers
-    from services.shell.zenoh_config import zenoh_config_from_args
-    from services.ros2.play import BagError, bag_topics, open_bag, play
-    from services.ros2.wire import RosNameError, node_namespace
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
-    try:
-        namespace = node_namespace(args.namespace)
-    except RosNameError as error:
-        raise CliError(str(error)) from None
-    if not (args.connect or args.listen or args.zenoh_config):  # join the ROS graph as rmw_zenoh does
-        args.connect, args.mode = [ROS2_ROUTER], args.mode or "client"
+    namespace = _ros_namespace(args.namespace)
+    _join_ros_graph(args)
     stop = threading.Event()
     install_signal_handlers(stop)
     try:
@@ -218,7 +270,7 @@ def _cmd_ros2_play(args: argparse.Namespace) -> int:
             try:
                 session = zenoh.open(zenoh_config_from_args(args))
             except zenoh.ZError as error:
-                raise CliError(f"cannot open a Zenoh session: {str(error).split('  at ')[0]}") from None
+                raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
             with session:
                 print(f"playing {args.bag} at {args.rate:g}x{' (loop)' if args.loop else ''} on domain "
                       f"{args.domain_id}: " + ", ".join(f"{t.topic} {t.msgtype} ({t.message_count})"
@@ -250,23 +302,34 @@ def _domain_id(text: str) -> int:
 def _cmd_router(args: argparse.Namespace) -> int:
     import threading
 
+    import zenoh
+
     from cvxnav.status import run_router
     from services.shell.stage import install_signal_handlers
-    from services.shell.zenoh_config import zenoh_config_from_args
+    from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
     if not args.listen and args.zenoh_config is None:
         args.listen = ["tcp/0.0.0.0:7447"]
     stop = threading.Event()
     install_signal_handlers(stop)
     ready = threading.Event()
-    thread = threading.Thread(target=run_router, kwargs=dict(session_config=zenoh_config_from_args(args),
-                                                             stop_event=stop, ready_event=ready))
+    failed: list[str] = []
+
+    def serve_router() -> None:
+        try:
+            run_router(session_config=zenoh_config_from_args(args), stop_event=stop, ready_event=ready)
+        except zenoh.ZError as error:  # e.g. an address no interface has, or a port in use
+            failed.append(zenoh_reason(error))
+
+    thread = threading.Thread(target=serve_router)
     thread.start()
     while thread.is_alive() and not ready.wait(0.1):
         pass
     if ready.is_set():
         print(f"cvxnav router listening on {', '.join(args.listen) or 'the config file endpoints'}", flush=True)
     thread.join()
+    if failed:
+        raise CliError(f"the router cannot listen: {failed[0]}")
     return EXIT_OK if ready.is_set() else EXIT_BAD_INPUT
 
 
@@ -311,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES
     from services.shell.watchdog import STALL_LIMIT_S
-    from services.shell.zenoh_config import add_zenoh_arguments
+    from services.shell.zenoh_config import add_zenoh_arguments, endpoint_argument
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
     run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
@@ -337,15 +400,22 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record-messages", type=Path, default=None, metavar="FILE.mcap",
                      help="record every message of the run (key, encoding, payload, receive time) as MCAP")
     network = run.add_argument_group("zenoh")
-    network.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
+    network.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
                          help="every process of the run also connects here, e.g. a router others reach: "
                               "tcp/HOST:7447 (repeatable)")
-    network.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
+    network.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
                          help="the run (under --tls: its router) also listens here for cvxnav status or a monitor "
                               "(repeatable)")
     network.add_argument("--tls", type=Path, default=None, metavar="DIR",
                          help="mutual TLS + access control with the certificates of `cvxnav certs --out DIR`; "
                               "made there first when DIR does not exist")
+    robot = run.add_argument_group("ROS 2 robot (CONTRACTS §6)")
+    robot.add_argument("--ros2", action="store_true",
+                       help="drive a ROS 2 robot (rmw_zenoh): the bridge in the sim's place, until Ctrl-C or SIGTERM; "
+                            f"every process joins the robot's rmw_zenohd (--connect, default {ROS2_ROUTER}); the "
+                            "sim's options and --out do not apply")
+    robot.add_argument("--domain-id", type=_domain_id, default=0, help="--ros2: ROS_DOMAIN_ID of the robot's graph")
+    robot.add_argument("--namespace", default="/", help="--ros2: the robot's namespace (its topics under it)")
     run.set_defaults(handler=_cmd_run)
 
     service = commands.add_parser("service", help="run one stage as a standalone process")
@@ -373,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--viewer", action="store_true", help="monitor: spawn a rerun viewer")
     monitor.add_argument("--viewer-url", default=None, metavar="URL",
                          help="monitor: stream to a viewer, e.g. rerun+http://host:9876/proxy")
+    bridge = service.add_argument_group("ros2 (the ROS 2 bridge; without --connect, --listen or --config it joins "
+                                        f"rmw_zenohd at {ROS2_ROUTER} as a client)")
+    bridge.add_argument("--domain-id", type=_domain_id, default=0, help="ros2: ROS_DOMAIN_ID of the robot's graph")
+    bridge.add_argument("--namespace", default="/", help="ros2: the robot's namespace (its topics under it)")
     add_zenoh_arguments(service)
     service.set_defaults(handler=_cmd_service)
 
@@ -412,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.set_defaults(handler=_cmd_certs)
 
     plot = commands.add_parser("plot", help="draw a plan.json or run.json as a PNG (like the paper's Fig. 5)")
-    plot.add_argument("file", type=Path, help="a cvxnav.plan/1 or cvxnav.run/2 (or /1) file")
+    plot.add_argument("file", type=Path, help="a cvxnav.plan/2 (or /1) or cvxnav.run/2 (or /1) file")
     plot.add_argument("--png", type=Path, default=Path("plot.png"), help="image to write")
     plot.add_argument("--scenario", type=Path, default=None,
                       help="the scenario file (default: the bundled paper scenario, when the file names it)")

@@ -2,7 +2,8 @@
 
 cluster → fit → grow → optimise → smooth, each stage the same pure code the distributed services run.
 On a known map each obstacle is one cluster whose solid is known (a convex cover of it), so the fit
-can measure its ellipses against the true shape.
+can measure its ellipses against the true shape. An occupancy grid is not fitted whole: the corridor
+planner (`services.maps.corridor`) fits the tiles of its cover that the query comes near.
 """
 
 from __future__ import annotations
@@ -15,11 +16,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.files import PlanFile, PlanTimings
-from schemas.scenario import Scenario
-from services.convert import ellipse_to_model
+from schemas.scenario import OccupancyGridObstacle, Scenario
+from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
+from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
-from services.planner.core import PathPlan, plan_until_verified
+from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start
+from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
 from services.smoother.core import Smoothed, smooth
 
@@ -31,6 +34,8 @@ class PlanSettings:
     refine: RefineSettings = field(default_factory=RefineSettings)
     # When the smoothed curve fails verification, re-optimise with wider margins, in this order.
     repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
+    grid_cover: GridCoverSettings = field(default_factory=GridCoverSettings)  # occupancy grids' cover
+    corridor: CorridorSettings = field(default_factory=CorridorSettings)  # ... and where it is fitted
 
 
 @dataclass
@@ -47,9 +52,10 @@ class _Clock:
 def fit_known_obstacles(
     scenario: Scenario, *, settings: PlanSettings, clock: _Clock
 ) -> tuple[list[Ellipse], np.ndarray]:
-    """Raw (un-grown) ellipses covering every obstacle of a known map tightly, and each one's obstacle."""
+    """Raw (un-grown) ellipses covering every obstacle of a known map tightly, and each one's obstacle
+    (occupancy grids aside: see `plan_scenario`)."""
     with clock.stage("cluster"):
-        clusters = [obstacle.cover_vertices() for obstacle in scenario.obstacles]
+        clusters = [obstacle.cover_vertices() for obstacle in scenario.obstacles if obstacle.type != "occupancy_grid"]
     with clock.stage("fit"):
         covers = [
             cover_polygon(vertices, tolerance_m=settings.cover_tolerance_m, max_pieces=settings.max_pieces)
@@ -64,11 +70,15 @@ def plan_on_model(
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
-    on the model every planner is handed."""
+    on the model every planner is handed. Goals reached at the start, or with the goal before them
+    (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`)."""
+    goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
+    if not len(goals):
+        return stay_at_start(scenario.start.xy, grown)
     problem = dict(
         start=scenario.start.xy,
         heading_rad=scenario.start.theta,
-        goals=scenario.goals_array,
+        goals=goals,
         ellipses=grown,
         bounds_min=np.array(scenario.bounds.min),
         bounds_max=np.array(scenario.bounds.max),
@@ -84,7 +94,7 @@ def plan_on_model(
             ellipses=grown,
             max_curvature=problem["max_curvature"],
             heading_rad=problem["heading_rad"],
-            goals=problem["goals"],
+            goals=scenario.goals_array,  # every goal, the dropped ones included
             goal_tolerance_m=scenario.goal_tolerance,
             bounds_min=problem["bounds_min"],
             bounds_max=problem["bounds_max"],
@@ -92,8 +102,18 @@ def plan_on_model(
     )
 
 
-def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()) -> PlanFile:
-    """Plan once on the scenario's known map; the result is verified or reported as `no_path`."""
+def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings(), load_ms: float = 0.0) -> PlanFile:
+    """Plan once on the scenario's known map; the result is verified or reported as `no_path`.
+
+    `load_ms`: how long reading the scenario and its map took, counted in the total (`cvxnav plan` times
+    it), so that the total is the whole time from the files to the path. The planning runs in the
+    scenario's local frame (`services.convert.LocalFrame`), the plan is moved back into the world's.
+    """
+    frame = LocalFrame.of(scenario)
+    return frame.to_world(_plan_local(frame.scenario_to_local(scenario), settings=settings, load_ms=load_ms))
+
+
+def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -> PlanFile:
     clock = _Clock()
     t0 = time.perf_counter()
     raw, _ = fit_known_obstacles(scenario, settings=settings, clock=clock)
@@ -102,11 +122,26 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         # ellipses, which the route search treats as one wall.
         grown = [e.grown(scenario.inflation_m) for e in raw]
 
-    plan, smoothed = plan_on_model(scenario, grown, settings=settings, clock=clock)
+    grids = [o for o in scenario.obstacles if isinstance(o, OccupancyGridObstacle)]
+    goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
+    if grids and len(goals):
+        cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
+        found = plan_in_corridor(
+            cover=cover,
+            waypoints=np.vstack([scenario.start.xy, goals]),
+            fixed=grown,
+            plan_fn=lambda ellipses: plan_on_model(scenario, ellipses, settings=settings, clock=clock),
+            settings=settings.corridor,
+            timer=clock.stage,
+        )
+        plan, smoothed, grown = found.plan, found.smoothed, found.grown
+    else:
+        plan, smoothed = plan_on_model(scenario, grown, settings=settings, clock=clock)
     ok = plan.status == "ok" and smoothed is not None and smoothed.verification.ok
-    for name in ("cluster", "fit", "group", "optimize", "smooth"):
+    for name in ("corridor", "cluster", "fit", "group", "optimize", "smooth"):
         clock.ms.setdefault(name, 0.0)
-    clock.ms["total"] = 1e3 * (time.perf_counter() - t0)
+    clock.ms["load"] = load_ms
+    clock.ms["total"] = load_ms + 1e3 * (time.perf_counter() - t0)
     return PlanFile(
         scenario=scenario.name,
         status="ok" if ok else "no_path",
@@ -114,4 +149,5 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
         raw_path=plan.points.tolist(),
         ellipsoids=[ellipse_to_model(e) for e in grown],
         timings_ms=PlanTimings(**clock.ms),
+        reason="" if ok else (plan.reason if smoothed is None else smoothed.verification.reason),
     )

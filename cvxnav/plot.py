@@ -1,6 +1,7 @@
 """`cvxnav plot`: a plan or run file drawn the way the paper's Figure 5 is, without a viewer.
 
-Obstacles (from the scenario: the file carries only its name), the inflated ellipses and the raw and
+Obstacles (from the scenario: the file carries only its name; a map as its cells, occupied black,
+unknown grey, placed by its origin and yaw), the inflated ellipses and the raw and
 smoothed paths (plan.json), the driven trajectory with the footprint every few seconds (run.json),
 start and goals. Matplotlib with the Agg backend, so it runs headless and in CI.
 """
@@ -12,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.files import RUN_FORMATS, OutputFileError, PlanFile, RunFile
-from schemas.scenario import Scenario
+from schemas.files import MAX_OUTPUT_BYTES, RUN_FORMAT, RUN_FORMATS, OutputFileError, PlanFile, RunFile
+from schemas.scenario import Scenario, read_text
 from services.monitor.shapes import closed, ellipse_outline, footprint_outline
 
 FOOTPRINT_EVERY_S = 2.0
@@ -26,19 +27,30 @@ class PlotError(ValueError):
 def read_result(path: Path) -> PlanFile | RunFile:
     """A plan or run file, chosen by its `format` field."""
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as error:
-        raise PlotError(f"{path}: cannot read: {error.strerror}") from None
+        doc = json.loads(read_text(path, error=PlotError, max_bytes=MAX_OUTPUT_BYTES)[0])
     except json.JSONDecodeError as error:
         raise PlotError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
     kind = doc.get("format") if isinstance(doc, dict) else None
-    model = {PlanFile.model_fields["format"].default: PlanFile, **dict.fromkeys(RUN_FORMATS, RunFile)}.get(kind)
+    model = {"cvxnav.plan/1": PlanFile, "cvxnav.plan/2": PlanFile, **dict.fromkeys(RUN_FORMATS, RunFile)}.get(kind)
     if model is None:
-        raise PlotError(f"{path}: format: expected cvxnav.plan/1 or {' or '.join(RUN_FORMATS)}, got {kind!r}")
+        raise PlotError(f"{path}: format: expected cvxnav.plan/2 (or /1) or {RUN_FORMAT} (or /1), got {kind!r}")
     try:
         return model.read(path)
     except OutputFileError as error:
         raise PlotError(str(error)) from None
+
+
+def _draw_grid(ax, grid) -> None:
+    """The map's cells under everything else: free white, occupied black, unknown grey."""
+    from matplotlib.transforms import Affine2D
+
+    from schemas.occupancy import FREE, OCCUPIED
+
+    shade = np.where(grid.state == FREE, 1.0, np.where(grid.state == OCCUPIED, 0.0, 0.72))
+    width, height = grid.size_m
+    place = Affine2D().rotate(grid.origin_yaw_rad).translate(grid.origin_x_m, grid.origin_y_m) + ax.transData
+    ax.imshow(shade, origin="lower", extent=(0.0, width, 0.0, height), cmap="gray", vmin=0.0, vmax=1.0,
+              interpolation="nearest", transform=place, zorder=0)
 
 
 def plot_result(*, result: PlanFile | RunFile, scenario: Scenario, png_path: Path, width_px: int = 1200,
@@ -53,7 +65,9 @@ def plot_result(*, result: PlanFile | RunFile, scenario: Scenario, png_path: Pat
     fig, ax = plt.subplots(figsize=(width_px / dpi, height_px / dpi), dpi=dpi)
     try:
         for obstacle in scenario.obstacles:
-            if obstacle.type == "circle":
+            if obstacle.type == "occupancy_grid":
+                _draw_grid(ax, obstacle.grid)
+            elif obstacle.type == "circle":
                 ax.add_patch(Circle(obstacle.center, obstacle.radius, facecolor="0.35", edgecolor="black"))
             else:
                 vertices = obstacle.vertices if obstacle.type == "polygon" else obstacle.cover_vertices()

@@ -31,6 +31,7 @@ from cvxnav.stages import load_factory
 from schemas.messages import DecodeError, Message, StageStatus, decode
 from schemas.wiring import STAGES, key, model_for, status_key
 from services.contract import StageCore, StageInputError
+from services.convert import LocalFrame
 
 RTOL = 1e-6
 ATOL = 1e-9
@@ -67,7 +68,8 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
                  rtol: float = RTOL, atol: float = ATOL) -> ReplayReport:
     """Feed the stage's recorded inputs to a fresh core; compare its outputs with the recorded ones."""
     spec = STAGES[stage]
-    core: StageCore = load_factory(entry_point or spec.factory)(recording.scenario)
+    frame = LocalFrame.of(recording.scenario)  # as the shell ran the core (`cvxnav.service.serve`)
+    core: StageCore = load_factory(entry_point or spec.factory)(frame.scenario_to_local(recording.scenario))
     inputs = {key(recording.prefix, topic): topic for topic in spec.subscribes}
     outputs = {key(recording.prefix, topic): topic for topic in spec.publishes}
     report = ReplayReport(stage=stage)
@@ -82,8 +84,8 @@ def replay_stage(recording: Recording, *, stage: str, entry_point: str | None = 
                 _index(recorded, counts_rec, outputs[item.key], message)
     for item, message in handling_order(recording, stage=stage, inputs=inputs):
         report.inputs += 1
-        for topic, output in _process(core, inputs[item.key], item, message, report):
-            _index(replayed, counts_rep, topic, output)
+        for topic, output in _process(core, inputs[item.key], item, message and frame.to_local(message), report):
+            _index(replayed, counts_rep, topic, frame.to_world(output))
     for match in sorted(recorded.keys() | replayed.keys(), key=lambda m: (m[1], m[0], m[2])):
         if match not in replayed:
             report.missing.append(match)

@@ -23,6 +23,7 @@ from cvxnav.exits import EXIT_BY_STATUS
 from cvxnav.stages import RunError, load_factory
 from schemas.scenario import Scenario
 from schemas.wiring import PROCESSES, SIM
+from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.stage import STOP_GRACE_S, install_signal_handlers, run_in_worker, run_stage
 from services.shell.watchdog import STALL_LIMIT_S, Progress, Watchdog, keep_alive
@@ -61,10 +62,15 @@ def serve(
     if watchdog is not None:
         keep_alive(watchdog=watchdog, progress=progress, stall_limit_s=stall_limit_s, stop_event=stop)
 
+    # A core computes near the origin, the keys carry world coordinates. A ROS 2 node's other side is the
+    # robot's own frame, so the bridge speaks world coordinates on both of its sides.
+    frame = LocalFrame() if PROCESSES[name].ros2 else LocalFrame.of(scenario)
+
     def work():
-        core = load_factory(entry_point or PROCESSES[name].factory)(scenario, **(options or {}))
+        core = load_factory(entry_point or PROCESSES[name].factory)(frame.scenario_to_local(scenario),
+                                                                     **(options or {}))
         run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
-                  max_payload_bytes=max_payload_bytes, state_dir=state_dir, progress=progress)
+                  max_payload_bytes=max_payload_bytes, state_dir=state_dir, frame=frame, progress=progress)
         return core
 
     finished, core = run_in_worker(work, stop_event=stop)
@@ -76,7 +82,7 @@ def serve(
         os._exit(EXIT_WORKER_BUSY)
     if name != SIM.name:
         return 0
-    result = core.result()
+    result = frame.to_world(core.result())
     if out_path is not None:
         result.write(out_path)
     return EXIT_BY_STATUS[result.status]

@@ -14,11 +14,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from schemas.scenario import read_text
 from schemas.wiring import PIPELINE, STAGES
 from services.contract import StageCore
 
 
-class RunError(Exception):
+STAGES_FILE_BYTES = 1 << 20  # a stages file names a few entry points
+
+
+class RunError(ValueError):
     """Bad input to `run`/`service` (a stages file, an entry point): one line, exit code 2."""
 
 
@@ -54,9 +58,7 @@ def load_stages(path: Path | None) -> dict[str, StageChoice]:
     if path is None:
         return choices
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as error:
-        raise RunError(f"{path}: cannot read: {error.strerror}") from None
+        doc = json.loads(read_text(path, error=RunError, max_bytes=STAGES_FILE_BYTES)[0])
     except json.JSONDecodeError as error:
         raise RunError(f"{path}: invalid JSON: {error.msg} (line {error.lineno})") from None
     stages = doc.get("stages", doc) if isinstance(doc, dict) else None

@@ -52,6 +52,11 @@ stage outlives a `cvxnav run` killed with SIGKILL, and the sim, stopping, writes
 The run's directory of stage logs, Zenoh configs and checkpoints is removed when every goal is
 reached or the run was interrupted, unless `RunOptions.keep_logs`; a run that failed keeps it, and
 its path is logged.
+
+`cvxnav run --ros2` (`run_robot`) drives a ROS 2 robot instead: the bridge (`cvxnav service ros2`, the
+wiring table's ROS2) takes the sim's place, started once the pipeline is alive and restarted like a
+stage if it exits, and the run goes on until SIGINT/SIGTERM (`stop_event`): then every process is
+stopped and the exit code is 0. Every process also connects to the robot's rmw_zenohd (`connect`).
 """
 
 from __future__ import annotations
@@ -66,6 +71,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -80,10 +86,11 @@ from cvxnav.stages import RunError, StageChoice, load_stages
 from schemas.files import OutputFileError, RunFile
 from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
-from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, SIM, STAGES, default_prefix, key
+from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, ROS2, SIM, STAGES, default_prefix, key
+from services.ros2.bridge import BridgeConfig
 from services.shell.peers import wait_for_stages
 from services.shell.watchdog import STALL_LIMIT_S, NotifySocket, watchdog_supported
-from services.shell.zenoh_config import config_from_doc, endpoints_config
+from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
@@ -121,6 +128,14 @@ class Child:
         return " | ".join(text[-lines:])
 
 
+@dataclass(frozen=True)
+class RobotOptions:
+    """`cvxnav run --ros2`: the robot's ROS graph, which the bridge joins in the sim's place."""
+
+    domain_id: int = 0
+    namespace: str = "/"
+
+
 @dataclass
 class RunOptions:
     scenario_path: Path | None  # None: the bundled paper scenario
@@ -139,6 +154,7 @@ class RunOptions:
     listen: tuple[str, ...] = ()  # the supervisor's session (under TLS: the run's router) also listens here
     tls_dir: Path | None = None  # mutual TLS + access control with the certificates of `cvxnav certs` here
     record_messages: Path | None = None  # MCAP file of every message under the prefix
+    robot: RobotOptions | None = None  # a ROS 2 robot's graph: the bridge runs in the sim's place
     # A stage that exits is restarted after restart_backoff_s, doubled for each of its restarts within
     # restart_window_s, at most restart_backoff_max_s; more than max_restarts of them end the run.
     restart_backoff_s: float = 0.5
@@ -151,9 +167,14 @@ class RunOptions:
     keep_logs: bool = False  # keep the run's directory of logs, configs and checkpoints whatever the outcome
 
     @property
+    def source(self) -> str:
+        """The process that closes the loop: the sim, or the bridge to a ROS 2 robot."""
+        return SIM.name if self.robot is None else ROS2.name
+
+    @property
     def process_names(self) -> list[str]:
         """Every process the run starts, in start order."""
-        return [*PIPELINE, *([MONITOR.name] if self.monitor_args is not None else []), SIM.name]
+        return [*PIPELINE, *([MONITOR.name] if self.monitor_args is not None else []), self.source]
 
 
 @dataclass(frozen=True)
@@ -279,6 +300,9 @@ class Supervisor:
                 cmd += ["--realtime"]
             if self.options.time_limit_s is not None:
                 cmd += ["--time-limit-s", repr(self.options.time_limit_s)]
+        if name == ROS2.name:
+            robot = self.options.robot
+            cmd += ["--domain-id", str(robot.domain_id), "--namespace", robot.namespace]
         return cmd
 
     def _monitor_args(self) -> list[str]:
@@ -425,13 +449,15 @@ def stop_processes(processes: list[subprocess.Popen], *, grace_s: float) -> list
     return killed
 
 
-def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: float) -> None:
+def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: float,
+                stop_event: threading.Event | None = None) -> None:
     deadline = time.monotonic() + timeout_s
     missing = set(supervisor.children)  # the pipeline, and the monitor if asked
-    while missing and time.monotonic() < deadline:
+    while missing and time.monotonic() < deadline and not (stop_event and stop_event.is_set()):
         supervisor.supervise()
-        missing = wait_for_stages(session, prefix=supervisor.prefix, stages=tuple(missing), timeout_s=1.0)
-    if missing:
+        missing = wait_for_stages(session, prefix=supervisor.prefix, stages=tuple(missing), timeout_s=1.0,
+                                  stop_event=stop_event)
+    if missing and not (stop_event and stop_event.is_set()):
         raise PipelineError(f"stages not alive after {timeout_s:.0f} s: {', '.join(sorted(missing))}")
 
 
@@ -451,7 +477,12 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     sim_started = interrupted = False
     code: int | None = None
     try:
-        with zenoh.open(config_from_doc(supervisor.session_doc)) as session:
+        try:
+            opened = zenoh.open(config_from_doc(supervisor.session_doc))
+        except zenoh.ZError as error:  # --listen on an address no interface has, a port in use
+            shutil.rmtree(supervisor.log_dir, ignore_errors=True)  # nothing started: nothing to look into
+            raise RunError(f"cannot open the run's Zenoh session: {zenoh_reason(error)}") from None
+        with opened as session:
             if recorder is not None:
                 recorder.subscribe(session)  # before any stage starts: the recording misses nothing
 
@@ -550,13 +581,79 @@ def _follow(*, sim: Child, supervisor: Supervisor, progress: _Progress, time_lim
     return sim.process.returncode
 
 
+@dataclass(frozen=True)
+class RobotRun:
+    """What `run_robot` saw: the paths it published on /plan, its restarts, how long it ran."""
+
+    plans: int
+    restarts: int
+    wall_s: float
+
+
+def run_robot(*, options: RunOptions, scenario: Scenario, stop_event: threading.Event) -> RobotRun:
+    """Every stage as a process and the ROS 2 bridge in the sim's place, until `stop_event`; then all stopped.
+
+    Stages (the bridge too) that exit or hang are restarted as in a sim run; PipelineError when one
+    keeps crashing or the pipeline never comes up. The stage logs are kept when any stage was
+    restarted, or when `options.keep_logs`.
+    """
+    assert options.robot is not None
+    supervisor = Supervisor(options=options, scenario=scenario)
+    bridge = BridgeConfig.from_scenario(scenario, domain_id=options.robot.domain_id,
+                                        namespace=options.robot.namespace)
+    recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
+                if options.record_messages is not None else None)
+    plans = 0
+    started = time.monotonic()
+    try:
+        with zenoh.open(config_from_doc(supervisor.session_doc)) as session:
+            if recorder is not None:
+                recorder.subscribe(session)
+
+            def on_plan(_sample: zenoh.Sample) -> None:
+                nonlocal plans
+                plans += 1
+
+            plan_sub = session.declare_subscriber(bridge.key("plan"), on_plan)
+            for name in PIPELINE:
+                supervisor.start(name)
+            if options.monitor_args is not None:
+                supervisor.start(MONITOR.name)
+            _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s, stop_event=stop_event)
+            if not stop_event.is_set():
+                supervisor.start(ROS2.name)
+                _follow_robot(supervisor=supervisor, stop_event=stop_event, plans=lambda: plans,
+                              show=options.show_progress)
+            plan_sub.undeclare()
+    finally:
+        supervisor.stop()
+        if recorder is not None:
+            recorder.close()
+    _clean_up(supervisor, keep=options.keep_logs or bool(supervisor.restarts))
+    return RobotRun(plans=plans, restarts=len(supervisor.restarts), wall_s=time.monotonic() - started)
+
+
+def _follow_robot(*, supervisor: Supervisor, stop_event: threading.Event, plans, show: bool) -> None:
+    """Show the paths published and restart crashed stages until `stop_event`."""
+    from rich.progress import Progress, TextColumn, TimeElapsedColumn
+
+    columns = (TextColumn("[bold]cvxnav run --ros2[/bold]  paths on /plan {task.fields[plans]}  restarts "
+                          "{task.fields[restarts]}"), TimeElapsedColumn())
+    with Progress(*columns, disable=not show) as bar:
+        task = bar.add_task("robot", total=None, plans=0, restarts=0)
+        while not stop_event.wait(0.1):
+            supervisor.supervise()
+            bar.update(task, plans=plans(), restarts=len(supervisor.restarts))
+
+
 def summary(result: RunFile, *, wall_s: float, out_path: Path, restarts: int = 0) -> str:
     """One line: outcome, goals, sim and wall time, replans, back-outs, restarts, latency, clearance, file."""
     t_end = result.trajectory[-1][0] if result.trajectory else 0.0
     lat = result.latency_ms
     times, metres = result.backed_out()
     backed = f", backed out {times}x ({metres:.1f} m)" if times else ""
+    clearance = "none (no obstacle)" if result.min_clearance is None else f"{result.min_clearance:.3f} m"
     return (f"{result.scenario}: {result.status}, goals {result.goals_reached}, sim {t_end:.1f} s in "
             f"{wall_s:.1f} s wall, replans {result.replans}{backed}, stage restarts {restarts}, scan->path latency "
             f"p50 {lat.p50:.0f} / p99 {lat.p99:.0f} / max {lat.max:.0f} ms, min clearance "
-            f"{result.min_clearance:.3f} m -> {out_path}")
+            f"{clearance} -> {out_path}")

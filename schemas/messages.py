@@ -167,6 +167,17 @@ class RobotState(Message):
     done: bool
 
 
+class Goals(Message):
+    """The goals to drive to, in order, replacing the scenario's (from a robot's ``/goal_pose``, via the
+    ROS 2 bridge). A ``RobotState``'s ``goal_index`` and ``goals_reached`` count in the newest list."""
+
+    SCHEMA: ClassVar[str] = "cvxnav.Goals"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    goals: list[Point] = Field(min_length=1)
+
+
 class StageStatus(Message):
     """Published by every stage after each input: ``error`` names what was rejected and why.
 
@@ -222,6 +233,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     RawPath,
     SmoothPath,
     RobotState,
+    Goals,
     StageStatus,
     World,
 )

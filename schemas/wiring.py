@@ -12,6 +12,12 @@ the closed-loop bench read this table; no core names a key of its own.
     ellipsoids --ellipsoids-->    sim (which checks every path against them before driving on it)
     sim        --world-->         monitor only (the true map; no planning stage may read it)
 
+For a ROS 2 robot (``cvxnav run --ros2``) the bridge ``ros2`` takes the sim's place: it publishes
+scan and state from the robot's /scan and /odom, reads smooth_path and ellipsoids as the sim does, and
+publishes ``goals`` (read by the planner and the smoother) when the robot is given a /goal_pose. It is
+also a ROS 2 node (``StageSpec.ros2``): its topics are rmw_zenoh's keys outside the prefix
+(``services.ros2.interface``), declared by the shell (``services.shell.ros2``).
+
 Three roles, one shell (``services.shell``): a ``stage`` works on the newest input of each key and
 reports a status after every input; the ``source`` (the sim) ticks, follows the pipeline stages'
 liveliness and every stage's status, and ends the run; the ``sink`` (the monitor) reads every topic
@@ -29,7 +35,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal, Mapping
 
-from schemas.messages import Clusters, Ellipsoids, Message, RawPath, RobotState, Scan, SmoothPath, World
+from schemas.messages import Clusters, Ellipsoids, Goals, Message, RawPath, RobotState, Scan, SmoothPath, World
 
 DEFAULT_ROBOT_ID = "robot1"
 
@@ -61,6 +67,7 @@ class StageSpec:
     role: Role = "stage"
     watches: tuple[str, ...] = ()  # processes whose liveliness the core is told of
     hears_statuses: bool = False  # the core is handed every process's StageStatus
+    ros2: bool = False  # also a ROS 2 node: raw CDR on rmw_zenoh's keys and its own liveliness tokens
 
     @property
     def every_input(self) -> bool:
@@ -84,6 +91,7 @@ TOPICS: Mapping[str, Topic] = MappingProxyType(
             Topic(name="raw_path", model=RawPath),
             Topic(name="smooth_path", model=SmoothPath),
             Topic(name="world", model=World, latched=True),
+            Topic(name="goals", model=Goals, latched=True),
         )
     }
 )
@@ -94,23 +102,28 @@ _PIPELINE = (
     StageSpec(name="ellipsoids", factory="services.ellipsoids.stage:EllipsoidsStage.from_scenario",
               subscribes=("clusters",), publishes=("ellipsoids",)),
     StageSpec(name="planner", factory="services.planner.stage:PlannerStage.from_scenario",
-              subscribes=("ellipsoids", "state"), publishes=("raw_path",)),
+              subscribes=("goals", "ellipsoids", "state"), publishes=("raw_path",)),
     StageSpec(name="smoother", factory="services.smoother.stage:SmootherStage.from_scenario",
-              subscribes=("raw_path",), publishes=("smooth_path",)),
+              subscribes=("goals", "raw_path"), publishes=("smooth_path",)),
 )
 PIPELINE: tuple[str, ...] = tuple(spec.name for spec in _PIPELINE)  # started first, in this order; then the sim
 
 SIM = StageSpec(name="sim", factory="sim.stage:SimStage.from_scenario", subscribes=("smooth_path", "ellipsoids"),
                 publishes=("scan", "state", "world"), role="source", watches=PIPELINE, hears_statuses=True)
 
+# The sim's place for a ROS 2 robot (`cvxnav run --ros2`): the robot's topics in and out, and its goals.
+ROS2 = StageSpec(name="ros2", factory="services.ros2.stage:BridgeStage.from_scenario",
+                 subscribes=("smooth_path", "ellipsoids"), publishes=("scan", "state", "goals"), role="source",
+                 watches=PIPELINE, ros2=True)
+
 # The observer: subscribes to every topic (and every status), publishes nothing.
 MONITOR = StageSpec(name="monitor", factory="services.monitor.rerun:MonitorCore.from_scenario",
                     subscribes=tuple(TOPICS), role="sink", hears_statuses=True)
 
-# The sim and the pipeline stages: every process but the observer.
+# The sim and the pipeline stages: every process of a sim run but the observer.
 STAGES: Mapping[str, StageSpec] = MappingProxyType({spec.name: spec for spec in (SIM, *_PIPELINE)})
 # Every process the table wires, the monitor last.
-PROCESSES: Mapping[str, StageSpec] = MappingProxyType({**STAGES, MONITOR.name: MONITOR})
+PROCESSES: Mapping[str, StageSpec] = MappingProxyType({**STAGES, ROS2.name: ROS2, MONITOR.name: MONITOR})
 
 
 def default_prefix(*, robot_id: str = DEFAULT_ROBOT_ID) -> str:
@@ -169,10 +182,9 @@ def model_for(topic: str) -> type[Message]:
     return TOPICS[topic].model
 
 
-def publisher_of(topic: str) -> str:
-    """The one process that publishes ``topic``."""
-    (name,) = (spec.name for spec in PROCESSES.values() if topic in spec.publishes)
-    return name
+def publishers_of(topic: str) -> tuple[str, ...]:
+    """The processes that publish ``topic``: one in a run, the sim or, for a ROS 2 robot, the bridge."""
+    return tuple(spec.name for spec in PROCESSES.values() if topic in spec.publishes)
 
 
 def subscribers_of(topic: str) -> tuple[str, ...]:

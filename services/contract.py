@@ -8,6 +8,8 @@ its ``state()`` and takes it back with ``restore()``, and the shell decides when
 persisted (after copper-rs's ``new`` + ``process`` tasks with ``Freezable`` state). What else a core
 asks the wiring table for (``StageSpec.watches``, ``hears_statuses``) the shell hands it as calls of
 ``Watching`` and ``Listening``, as dora-rs hands a node its inputs and its peers' failures as events.
+A process that is also a ROS 2 node (``StageSpec.ros2``) speaks keys outside the table's JSON key space
+through ``Bridging``: raw bytes in, ``Raw`` bytes out, the codec (CDR) the core's own.
 """
 
 from __future__ import annotations
@@ -27,8 +29,17 @@ class Refusal:
     reason: str
 
 
-# By topic: a message to publish on an output topic, or a Refusal of an input on an input topic.
-Outputs = list[tuple[str, BaseModel | Refusal]]
+@dataclass(frozen=True)
+class Raw:
+    """Bytes for an output port outside the wiring table's key space (a ROS 2 topic's CDR), encoded by the
+    core; the shell publishes them as they are."""
+
+    payload: bytes
+
+
+# By topic: a message to publish on an output topic, a Refusal of an input on an input topic, or Raw
+# bytes for a bridging core's output port.
+Outputs = list[tuple[str, BaseModel | Refusal | Raw]]
 
 
 class StageInputError(ValueError):
@@ -77,6 +88,20 @@ class Listening(Protocol):
     """A core handed every process's status (``StageSpec.hears_statuses``)."""
 
     def hear_status(self, *, stage: str, status: StageStatus, now_s: float) -> Outputs:
+        ...
+
+
+@runtime_checkable
+class Bridging(Protocol):
+    """A core that is also a ROS 2 node (``StageSpec.ros2``): the shell declares the node and its topics
+    (``services.ros2.interface``) in ``domain_id`` under ``namespace``, hands the core every sample of an
+    input port undecoded, and publishes its ``Raw`` outputs on the output ports."""
+
+    domain_id: int
+    namespace: str
+
+    def receive(self, *, port: str, key_expr: str, payload: bytes, now_s: float) -> Outputs:
+        """One sample of input ``port`` (a ROS topic), as received on ``key_expr``."""
         ...
 
 

@@ -274,6 +274,12 @@ class EllipseStack:
         """
         if len(self) == 0 or len(centers) == 0:
             return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+        if len(self._reach_classes) > 1:  # each class of similar reach asked with its own largest reach
+            parts = [stack.near_pairs(centers, radii, run=run) for _, stack in self._reach_classes]
+            rows = np.concatenate([r for r, _ in parts])
+            cols = np.concatenate([index[c] for (index, _), (_, c) in zip(self._reach_classes, parts)])
+            order = np.lexsort((cols, rows))
+            return rows[order], cols[order]
         if run > 1:
             starts = np.arange(0, len(centers), run)
             size = np.diff(np.append(starts, len(centers)))
@@ -294,6 +300,18 @@ class EllipseStack:
             rows = np.repeat(np.arange(len(centers)), counts)
         close = np.linalg.norm(centers[rows] - self.centers[cols], axis=1) <= radii[rows] + self.reach[cols]
         return rows[close], cols[close]
+
+    @cached_property
+    def _reach_classes(self) -> list[tuple[FloatArray, EllipseStack]]:
+        """The ellipses (indices, stack) in classes of reach within a factor 4, when there is more than one:
+        the broad phase asks each class's tree with that class's largest reach, not the stack's (a few
+        walls' long ellipses among many small ones otherwise make every query a wide one)."""
+        reach = self.reach
+        if len(reach) < 64 or reach.max() <= 4.0 * reach.min():
+            return []
+        level = np.floor(np.log(reach / reach.min()) / np.log(4.0)).astype(int)
+        return [(index, EllipseStack(A=self.A[index], b=self.b[index]))
+                for index in (np.flatnonzero(level == k) for k in np.unique(level))]
 
     def min_levels(self, points: ArrayLike) -> FloatArray:
         """min over ellipses of ‖Aⱼ z + bⱼ‖ for each point (+inf where no ellipse is near)."""

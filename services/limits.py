@@ -26,6 +26,7 @@ DEFAULT_MAX_PAYLOAD_BYTES = 1 << 20  # an input message larger than this is reje
 MAX_SENSED_POINTS = 50_000  # points the sensing stage remembers; so at most this many per Clusters
 MAX_ELLIPSES = 1024  # per Ellipsoids / RawPath message: far above a real map's, far below a stall
 MAX_PATH_POINTS = 10_000  # per RawPath / SmoothPath: 1 km at the planner's 0.1 m step
+MAX_GOALS = 256  # per Goals message: a tour the planner searches in one plan
 MIN_SEMI_AXIS_M = 1e-6
 
 
@@ -68,6 +69,12 @@ class Reach:
         xy = np.array([pose.x_m, pose.y_m])
         if np.any(xy < self.bounds_min) or np.any(xy > self.bounds_max):
             raise StageInputError(f"{what}: pose ({pose.x_m:.6g}, {pose.y_m:.6g}) is outside the map bounds")
+
+    def check_goals(self, goals: FloatArray, *, what: str) -> None:
+        """At most ``MAX_GOALS``, each inside the map bounds (where the robot can be)."""
+        check_count(len(goals), limit=MAX_GOALS, what=f"{what}: goals")
+        for k, (x, y) in enumerate(np.asarray(goals, dtype=float).reshape(-1, 2).tolist()):
+            self.check_pose(Pose2D(x_m=x, y_m=y, theta_rad=0.0), what=f"{what}: goal {k}")
 
     def check_ellipses(self, ellipses: Sequence[EllipsoidMsg], *, what: str) -> None:
         """At most ``MAX_ELLIPSES``; centres within reach; semi-axes between a micron and the map's size."""

@@ -1,20 +1,15 @@
-"""Pure simulator core: kinematic bicycle, range sensor, path tracker and the true world (no I/O)."""
+"""Pure simulator core: the range sensor and the true world the simulated car drives in (no I/O).
 
-from sim.controller import Command, GoalTracker, PurePursuit
+The car itself, its path tracker and its path guard are `services.drive`'s: the ROS 2 bridge drives a
+real robot with the same ones.
+"""
+
 from sim.sensor import Circle, RangeSensor, RayTargets
-from sim.vehicle import VehicleLimits, VehicleState, footprint, step
 from sim.world import World
 
 __all__ = [
     "Circle",
-    "Command",
-    "GoalTracker",
-    "PurePursuit",
     "RangeSensor",
     "RayTargets",
-    "VehicleLimits",
-    "VehicleState",
     "World",
-    "footprint",
-    "step",
 ]

@@ -29,10 +29,10 @@ import numpy as np
 from schemas.files import LatencyStats, RunFile
 from schemas.messages import Ellipsoids, Header, Pose2D, RobotState, Scan, SmoothPath
 from schemas.scenario import Scenario
-from sim.controller import GoalTracker, PurePursuit
-from sim.guard import PathGuard, ahead
+from services.drive.controller import GoalTracker, PurePursuit
+from services.drive.guard import PathGuard, ahead
+from services.drive.vehicle import VehicleLimits, VehicleState, step
 from sim.sensor import RangeSensor
-from sim.vehicle import VehicleLimits, VehicleState, step
 from sim.world import World
 
 logger = logging.getLogger(__name__)
@@ -83,6 +83,7 @@ class SimCore:
         self.controller = PurePursuit.from_limits(self.limits)
         self.goals = GoalTracker.from_scenario(scenario)
         self.state = VehicleState.at_start(scenario)
+        self.goals.update(x_m=self.state.x_m, y_m=self.state.y_m)  # goals at the start are reached at once
         self.time_limit_s = self.config.time_limit_s or default_time_limit_s(scenario)
         period_s = 1.0 / float(scenario.sensor.rate_hz)
         self.steps_per_scan = max(1, round(period_s / self.config.dt_s))
@@ -108,7 +109,7 @@ class SimCore:
         self.carried: dict[int, list[tuple[int, int]]] = {}  # scan seq -> the unheard hits (cells) it carried
         self.trajectory: list[tuple[float, float, float, float]] = [self._row()]
         self.min_clearance_m = self.world.footprint_clearance(self.state)
-        self.outcome: Outcome | None = None
+        self.outcome: Outcome | None = "reached" if self.goals.done else None
 
     @property
     def t_s(self) -> float:
@@ -343,5 +344,5 @@ class SimCore:
             trajectory=self.trajectory,
             replans=self.replans,
             latency_ms=stats,
-            min_clearance=float(self.min_clearance_m),
+            min_clearance=float(self.min_clearance_m) if math.isfinite(self.min_clearance_m) else None,  # no obstacle
         )

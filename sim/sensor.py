@@ -1,7 +1,7 @@
-"""Simulated 2-D range sensor: exact ray casting against polygons and circles.
+"""Simulated 2-D range sensor: exact ray casting against polygons, circles and occupancy grids.
 
 Obstacles are shapely geometries (Polygon, MultiPolygon, LineString, ... — every boundary edge is a
-target) or `Circle`s. A circle given as a buffered shapely point is a polygon with 4·quad_segs edges
+target), `Circle`s, or `OccupancyGrid`s (every blocked cell a square, beyond the map blocked). A circle given as a buffered shapely point is a polygon with 4·quad_segs edges
 and is hit exactly on that polygon, not on the true circle; pass a `Circle` where the exact curved
 surface matters (World.from_scenario does so for the scenario's circle obstacles).
 
@@ -10,6 +10,9 @@ Ray p(t) = o + t d (‖d‖ = 1, t = range). Against a segment a + u e, u ∈ [0
 rays parallel to an edge (d × e = 0) skip it; its end points are hit through the neighbouring edges.
 Against a circle |p − c| = r: t² + 2 (f·d) t + (|f|² − r²) = 0 with f = o − c; the nearest
 non-negative root is the hit. Everything is evaluated for all rays × all edges at once with numpy.
+A grid is traversed cell by cell along every ray at once (Amanatides & Woo's voxel traversal, 1987): the
+distance at which a ray enters its first blocked cell is the hit, exact for the square, at a cost that
+follows the range in cells, not the map's size.
 """
 
 from __future__ import annotations
@@ -23,7 +26,10 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry.base import BaseGeometry
 
+from schemas.occupancy import OccupancyGrid
+
 FloatArray = NDArray[np.float64]
+BLOCK_PAIRS = 1 << 20  # ray-target pairs cast at once: about 8 MiB per intermediate array
 
 
 @dataclass(frozen=True)
@@ -50,23 +56,29 @@ class Circle:
         return np.maximum(np.hypot(z[:, 0] - self.center[0], z[:, 1] - self.center[1]) - self.radius_m, 0.0)
 
 
-Obstacle = BaseGeometry | Circle
+Obstacle = BaseGeometry | Circle | OccupancyGrid
 
 
 @dataclass(frozen=True, eq=False)
 class RayTargets:
-    """Obstacles flattened once into arrays the ray caster sweeps: edges (m, 4) and circles (k, 3)."""
+    """Obstacles flattened once into arrays the ray caster sweeps: edges (m, 4) and circles (k, 3), and the
+    grids it traverses."""
 
     edges: FloatArray  # rows: ax, ay, bx, by
     circles: FloatArray  # rows: cx, cy, r
+    grids: tuple[OccupancyGrid, ...] = ()
 
     @classmethod
     def of(cls, obstacles: Iterable[Obstacle]) -> RayTargets:
         edges: list[FloatArray] = []
         circles: list[tuple[float, float, float]] = []
+        grids: list[OccupancyGrid] = []
         for obstacle in obstacles:
             if isinstance(obstacle, Circle):
                 circles.append((*obstacle.center, obstacle.radius_m))
+                continue
+            if isinstance(obstacle, OccupancyGrid):
+                grids.append(obstacle)
                 continue
             for part in shapely.get_parts(obstacle):
                 if isinstance(part, shapely.Polygon):
@@ -82,13 +94,74 @@ class RayTargets:
         return cls(
             edges=np.concatenate(edges) if edges else np.zeros((0, 4)),
             circles=np.array(circles, dtype=float).reshape(-1, 3),
+            grids=tuple(grids),
         )
 
 
-def cast_rays(*, origin: Sequence[float], angles_rad: FloatArray, targets: RayTargets) -> FloatArray:
-    """Distance along each ray from `origin` to the first obstacle surface; inf where nothing is hit."""
-    ox, oy = float(origin[0]), float(origin[1])
+def cast_rays_grid(grid: OccupancyGrid, *, origin: Sequence[float], angles_rad: FloatArray,
+                   max_range_m: float) -> FloatArray:
+    """Distance along each ray to the first blocked cell of the grid it enters (inf beyond `max_range_m`;
+    0 from inside a blocked cell). In the grid frame, in cells: a ray o + t d crosses the next vertical
+    cell boundary at t_x and the next horizontal one at t_y; stepping into the cell across the nearer one
+    visits every cell the ray passes, in order."""
+    res = grid.resolution_m
+    o = grid.to_grid(np.asarray(origin, dtype=float)[None, :])[0] / res
+    yaw = np.arctan2(grid.rotation[1, 0], grid.rotation[0, 0])
+    d = np.column_stack([np.cos(angles_rad - yaw), np.sin(angles_rad - yaw)])
+    n = len(d)
+    i = np.full(n, int(math.floor(o[0])))
+    j = np.full(n, int(math.floor(o[1])))
+    step = np.where(d >= 0.0, 1, -1)
+    with np.errstate(divide="ignore"):
+        inverse = np.where(d != 0.0, 1.0 / np.abs(d), np.inf)  # t per cell along each axis
+    first = np.where(d >= 0.0, np.floor(o) + 1.0 - o, o - np.floor(o))  # cells to the first boundary
+    t_next = first * inverse  # (n, 2): t of the next x and y boundary
+    t_cell = np.zeros(n)  # t at which the ray entered its current cell
+    limit = max_range_m / res
+    out = np.full(n, np.inf)
+    rows, cols = grid.shape
+    blocked = grid.blocked
+    active = np.arange(n)
+    while len(active):
+        ia, ja = i[active], j[active]
+        inside = (ia >= 0) & (ja >= 0) & (ia < cols) & (ja < rows)
+        hit = ~inside  # beyond the map is blocked
+        hit[inside] = blocked[ja[inside], ia[inside]]
+        out[active[hit]] = t_cell[active[hit]] * res
+        active = active[~hit]
+        if not len(active):
+            break
+        axis = (t_next[active, 1] < t_next[active, 0]).astype(np.intp)  # 0: cross x next, 1: cross y
+        t_cell[active] = t_next[active, axis]
+        far = t_cell[active] > limit
+        active = active[~far]
+        axis = axis[~far]
+        t_next[active, axis] += inverse[active, axis]
+        x_step = axis == 0
+        i[active[x_step]] += step[active[x_step], 0]
+        j[active[~x_step]] += step[active[~x_step], 1]
+    return out
+
+
+def cast_rays(*, origin: Sequence[float], angles_rad: FloatArray, targets: RayTargets,
+              max_range_m: float = math.inf) -> FloatArray:
+    """Distance along each ray from `origin` to the first obstacle surface; inf where nothing is hit (a
+    grid is traversed up to `max_range_m` only).
+
+    Rays × edges (and rays × circles) are swept in blocks of at most `BLOCK_PAIRS` pairs, so the memory
+    of a scan stays bounded whatever the sensor's rays and the world's edges (4096 × 100 000 at once
+    would be gigabytes per intermediate array).
+    """
     angles = np.asarray(angles_rad, dtype=float)
+    per_block = max(1, BLOCK_PAIRS // max(1, len(targets.edges), len(targets.circles)))
+    if len(angles) <= per_block:
+        return _cast_block(origin=origin, angles=angles, targets=targets, max_range_m=max_range_m)
+    return np.concatenate([_cast_block(origin=origin, angles=angles[k : k + per_block], targets=targets,
+                                       max_range_m=max_range_m) for k in range(0, len(angles), per_block)])
+
+
+def _cast_block(*, origin: Sequence[float], angles: FloatArray, targets: RayTargets, max_range_m: float) -> FloatArray:
+    ox, oy = float(origin[0]), float(origin[1])
     dx, dy = np.cos(angles)[:, None], np.sin(angles)[:, None]  # (n, 1)
     best = np.full(angles.shape, np.inf)
 
@@ -116,6 +189,8 @@ def cast_rays(*, origin: Sequence[float], angles_rad: FloatArray, targets: RayTa
         t = np.where((disc >= 0.0) & (t >= 0.0), t, np.inf)
         best = np.minimum(best, t.min(axis=1))
 
+    for grid in targets.grids:
+        best = np.minimum(best, cast_rays_grid(grid, origin=origin, angles_rad=angles, max_range_m=max_range_m))
     return best
 
 
@@ -167,7 +242,8 @@ class RangeSensor:
     ) -> FloatArray:
         """Measured range per beam (inf where nothing lies within `range_m`)."""
         targets = obstacles if isinstance(obstacles, RayTargets) else RayTargets.of(obstacles)
-        true = cast_rays(origin=(x_m, y_m), angles_rad=self.ray_angles_rad(theta_rad), targets=targets)
+        true = cast_rays(origin=(x_m, y_m), angles_rad=self.ray_angles_rad(theta_rad), targets=targets,
+                         max_range_m=self.range_m)
         seen = true <= self.range_m
         measured = np.where(seen, true, np.inf)
         if rng is not None and self.noise_std_m > 0.0:

@@ -30,9 +30,9 @@ will not drive on (a `Refusal`). Two watchdogs:
   stage was down ride along with the following scans, as many as keep each a valid scan, until a scan
   that carried them is answered, so the restarted stage's memory misses nothing the car saw (its point
   memory dedupes them).
-- the path check (`sim.guard`): every path, and the path being driven whenever newer ellipses arrive,
-  is checked against the newest grown ellipses from the ellipsoid stage; a path that enters one is not
-  driven. For a received path the sim says why on its status key; a driven path that newer ellipses
+- the path check (`services.drive.guard`): every path, and the path being driven whenever newer
+  ellipses arrive, is checked against the newest grown ellipses from the ellipsoid stage; a path that
+  enters one is not driven. For a received path the sim says why on its status key; a driven path that newer ellipses
   cross is routine (the planner replans on the same ellipses), so it is only logged.
 """
 

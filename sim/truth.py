@@ -7,7 +7,8 @@ from schemas.scenario import Scenario
 
 
 def world_message(scenario: Scenario, *, stamp_s: float = 0.0) -> World:
-    """Outlines of every true obstacle (circles exact, point sets as their convex hull)."""
+    """Outlines of every true obstacle (circles exact, point sets as their convex hull, a map's occupied
+    cells as rectangles)."""
     polygons: list[list[tuple[float, float]]] = []
     circles: list[CircleMsg] = []
     for obstacle in scenario.obstacles:
@@ -15,6 +16,8 @@ def world_message(scenario: Scenario, *, stamp_s: float = 0.0) -> World:
             circles.append(CircleMsg(center=tuple(obstacle.center), radius_m=float(obstacle.radius)))
         elif obstacle.type == "polygon":
             polygons.append([(float(x), float(y)) for x, y in obstacle.vertices])
+        elif obstacle.type == "occupancy_grid":  # its occupied cells, as rectangles (unknown ones left out)
+            polygons += [[(float(x), float(y)) for x, y in box] for box in obstacle.grid.rectangles()]
         else:
             polygons.append([(float(x), float(y)) for x, y in obstacle.cover_vertices()])
     return World(

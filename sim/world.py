@@ -13,8 +13,9 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike, NDArray
 
+from schemas.occupancy import FREE, OccupancyGrid
+from services.drive.vehicle import VehicleState, footprint
 from sim.sensor import Circle, Obstacle, RayTargets
-from sim.vehicle import VehicleState, footprint
 
 FloatArray = NDArray[np.float64]
 
@@ -33,16 +34,20 @@ class World:
     def __post_init__(self) -> None:
         object.__setattr__(self, "obstacles", tuple(self.obstacles))
         object.__setattr__(self, "ray_targets", RayTargets.of(self.obstacles))
-        object.__setattr__(self, "_shapes", [o for o in self.obstacles if not isinstance(o, Circle)])
+        object.__setattr__(self, "_shapes", [o for o in self.obstacles if not isinstance(o, (Circle, OccupancyGrid))])
         object.__setattr__(self, "_circles", [o for o in self.obstacles if isinstance(o, Circle)])
+        object.__setattr__(self, "_grids", [o for o in self.obstacles if isinstance(o, OccupancyGrid)])
 
     @classmethod
     def from_scenario(cls, scenario) -> World:
-        """Obstacles from `scenario.obstacles[i]`: circles kept exact, everything else via `.solid()`."""
+        """Obstacles from `scenario.obstacles[i]`: circles kept exact, occupancy grids as their cells,
+        everything else via `.solid()`."""
         obstacles: list[Obstacle] = []
         for obstacle in scenario.obstacles:
             if getattr(obstacle, "type", None) == "circle":
                 obstacles.append(Circle(center=tuple(obstacle.center), radius_m=float(obstacle.radius)))
+            elif getattr(obstacle, "type", None) == "occupancy_grid":
+                obstacles.append(obstacle.grid)
             else:
                 obstacles.append(obstacle.solid())
         bounds = getattr(scenario, "bounds", None)
@@ -64,6 +69,8 @@ class World:
             best = np.minimum(best, d.min(axis=0))
         for circle in self._circles:
             best = np.minimum(best, circle.distance(z))
+        for grid in self._grids:
+            best = np.minimum(best, grid.clearance(z))
         return best
 
     def footprint_clearance(self, state: VehicleState) -> float:
@@ -74,6 +81,8 @@ class World:
             best = float(np.min(shapely.distance(shape, np.asarray(self._shapes, dtype=object))))
         for circle in self._circles:
             best = min(best, max(float(shape.distance(shapely.Point(circle.center))) - circle.radius_m, 0.0))
+        for grid in self._grids:
+            best = min(best, _grid_footprint_clearance(grid, shape, centre=(state.x_m, state.y_m)))
         return float(best)
 
     def footprint_collides(self, state: VehicleState) -> bool:
@@ -87,3 +96,32 @@ class World:
         minx, miny, maxx, maxy = footprint(state, width_m=self.robot_width_m, length_m=self.robot_length_m).bounds
         return (minx >= self.bounds_min[0] and miny >= self.bounds_min[1]
                 and maxx <= self.bounds_max[0] and maxy <= self.bounds_max[1])
+
+
+def _grid_footprint_clearance(grid: OccupancyGrid, shape: shapely.Polygon, *, centre: tuple[float, float]) -> float:
+    """Exact distance from the footprint to the grid's blocked squares (0 on or in one, or beyond the map).
+
+    Candidates are the border cells (a free footprint's nearest blocked square is one, as for a point):
+    a square whose centre is d from the footprint's centre is at least d − h − s√2/2 away (h the
+    footprint's half-diagonal, s the cell), so only those within the nearest centre's distance plus
+    2h + s√2 are measured, with shapely.
+    """
+    corners = np.asarray(shape.exterior.coords)[:-1]
+    if np.any(grid.state_at(corners) != FREE) or np.any(grid.state_at(np.asarray(centre)[None, :]) != FREE):
+        return 0.0
+    tree, cells = grid._border_tree
+    if tree is None:
+        return float("inf")
+    g = grid.to_grid(np.asarray(centre)[None, :])[0]
+    half = float(np.max(np.linalg.norm(corners - np.asarray(centre), axis=1)))
+    nearest = float(tree.query(g)[0])
+    ball = tree.query_ball_point(g, r=nearest + 2.0 * half + grid.resolution_m * np.sqrt(2.0))
+    lo = grid.to_world(cells[ball] - 0.5 * grid.resolution_m)
+    hi = grid.to_world(cells[ball] + 0.5 * grid.resolution_m)
+    if grid.origin_yaw_rad == 0.0:
+        boxes = shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1])
+    else:
+        half_cell = 0.5 * grid.resolution_m
+        offsets = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half_cell
+        boxes = shapely.polygons(np.stack([grid.to_world(cells[ball] + o) for o in offsets], axis=1))
+    return float(np.min(shapely.distance(shape, boxes)))

@@ -11,8 +11,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/4"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios'
-# intervals; /4: the fit on several point sets (`FitResult.point_sets`)
+FORMAT = "cvxnav.bench/5"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios'
+# intervals; /4: the fit on several point sets (`FitResult.point_sets`); /5: occupancy-grid maps (`maps`)
 
 
 class _Frozen(BaseModel):
@@ -100,8 +100,63 @@ class Machine(_Frozen):
     packages: dict[str, str]
 
 
+class MapPlannerResult(_Frozen):
+    """One planner on one map scenario, over its repeats; times from reading the files to the path."""
+
+    planner: str
+    success: bool  # a path on every repeat, none colliding with the true geometry, every goal reached
+    collision: bool
+    reason: str = ""
+    repeats: int = Field(ge=0)
+    length_m: float | None = None  # median
+    length_ratio: float | None = None  # ÷ the REFERENCE optimum, where there is one
+    min_clearance_m: float | None = None  # worst true clearance over the paths
+    time_median_ms: float | None = None
+    time_p90_ms: float | None = None
+    times_ms: list[float] = []
+    stages_ms: dict[str, float] = {}  # median time per stage (cvxnav's timings_ms; the grid planner's own)
+    target_reached: int | None = None  # BIT*: repeats within 1 % of `MapScenarioResult.target_m` in budget
+
+
+class MapScenarioResult(_Frozen):
+    name: str
+    note: str
+    cells: int = Field(gt=0)
+    resolution_m: float = Field(gt=0)
+    area_m2: float = Field(gt=0)
+    reference_m: float | None  # REFERENCE.json's true-geometry optimum (the depot queries)
+    target_m: float | None  # BIT*'s: the reference, else cvxnav's length
+    planners: list[MapPlannerResult]
+
+
+class MapGrowthPoint(_Frozen):
+    """The depot tiled `tiles` times side by side, depot-1's query: median times in turns."""
+
+    tiles: int = Field(gt=0)
+    cells: int = Field(gt=0)
+    cvxnav_ms: float
+    grid_ms: float
+    ok: bool
+
+
+class MapTargets(_Frozen):
+    length_ratio_vs_reference: dict[str, float]  # cvxnav length ÷ REFERENCE (target ≤ 1.02)
+    time_ratio_vs_grid: dict[str, float]  # cvxnav median ÷ grid planner median (target ≤ 1, goal ≤ 0.3)
+    time_ratio_vs_grid_interval: dict[str, tuple[float, float]] = {}  # its 95 % bootstrap interval
+    growth_exponent_in_cells: dict[str, float] = {}  # slope of log time on log cells over the tiled depots
+    peak_rss_mib: float | None = None  # cvxnav plan on the 30 × 50 m map (target ≤ 1024)
+
+
+class MapBenchResult(_Frozen):
+    scenarios: list[MapScenarioResult]
+    growth: list[MapGrowthPoint]
+    peak_rss_mib: dict[str, float]  # per planner, on the 30 × 50 m map
+    targets: MapTargets
+    notes: list[str]
+
+
 class BenchReport(_Frozen):
-    format: Literal["cvxnav.bench/4"] = FORMAT
+    format: Literal["cvxnav.bench/5"] = FORMAT
     command: str
     machine: Machine
     quick: bool
@@ -113,4 +168,5 @@ class BenchReport(_Frozen):
     fit: list[FitResult]
     scaling: ScalingResult | None
     targets: TargetRatios
+    maps: MapBenchResult | None = None  # `cvxnav bench --maps`, or scenario/2 files given
     wall_s: float = Field(ge=0)

@@ -26,7 +26,6 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
-from scipy import stats
 
 from cvxnav.bench import planners
 from cvxnav.bench.planners import Attempt
@@ -40,7 +39,7 @@ from cvxnav.bench.report import (
     ScenarioResult,
     TargetRatios,
 )
-from cvxnav.bench.turns import in_turns
+from cvxnav.bench.turns import in_turns, ratio_interval
 from schemas.scenario import Scenario
 
 CVXNAV = "cvxnav"
@@ -76,6 +75,17 @@ class BenchOptions:
         return cls(quick=True, repeats=repeats or 2, min_timed_s=0.05, sampling_budget_s=1.0, drake_regions=8,
                    drake_repeats=1, fit_counts=(20, 100), fit_repeats=5, fit_sets=5, scaling_counts=(10, 25),
                    scaling_repeats=1)
+
+
+@dataclass(frozen=True)
+class MapRun:
+    """The map part of a run (`cvxnav.bench.maps`): the cases, their options, where generated files go, and
+    the shared folder for the growth run (None: no growth run)."""
+
+    cases: list
+    options: object
+    work_dir: Path
+    shared: Path | None
 
 
 @dataclass(frozen=True)
@@ -215,10 +225,26 @@ def _specs(options: BenchOptions, peers: dict[str, str], leg_optima: list[float]
 
 
 def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: str,
-              console: Console | None = None, show_progress: bool = True) -> BenchReport:
+              console: Console | None = None, show_progress: bool = True, maps: MapRun | None = None) -> BenchReport:
     console = console or Console(stderr=True)
     started = time.perf_counter()
     peers = planners.peer_status()
+    map_result = None
+    if maps is not None:
+        from cvxnav.bench.maps import run_map_bench
+
+        with Progress(TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
+                      disable=not show_progress) as bar:
+            task = bar.add_task("maps")
+            map_result = run_map_bench(maps.cases, options=maps.options, work_dir=maps.work_dir, shared=maps.shared,
+                                       with_ompl=not peers["ompl"],
+                                       on_step=lambda text: bar.update(task, description=f"maps: {text}"))
+    if not scenarios:
+        return BenchReport(command=command, machine=_machine(), quick=options.quick, repeats=options.repeats,
+                           sampling_budget_s=options.sampling_budget_s, collision_tolerance_m=COLLISION_TOLERANCE_M,
+                           notes=[f"skipped {name}: {why}" for name, why in peers.items() if why], scenarios=[], fit=[],
+                           scaling=None, targets=_targets([], [], None), maps=map_result,
+                           wall_s=time.perf_counter() - started)
     if not peers["ompl"]:
         from ompl import util as ou
 
@@ -305,7 +331,7 @@ def run_bench(*, scenarios: Sequence[Scenario], options: BenchOptions, command: 
     return BenchReport(
         command=command, machine=_machine(), quick=options.quick, repeats=options.repeats,
         sampling_budget_s=options.sampling_budget_s, collision_tolerance_m=COLLISION_TOLERANCE_M, notes=notes,
-        scenarios=results, fit=fit, scaling=scaling, targets=_targets(results, fit, scaling),
+        scenarios=results, fit=fit, scaling=scaling, targets=_targets(results, fit, scaling), maps=map_result,
         wall_s=time.perf_counter() - started,
     )
 
@@ -336,27 +362,6 @@ def _targets(results: list[ScenarioResult], fit: list[FitResult], scaling: Scali
                         time_ratio_vs_bitstar_is_lower_bound=lower, time_ratio_vs_bitstar_interval=intervals,
                         fit_ratio_vs_drake=fit_ratio, fit_ratio_vs_drake_interval=fit_intervals,
                         growth_exponent=scaling.growth_exponent if scaling else None)
-
-
-def ratio_interval(ours_ms: Sequence[float], theirs_ms: Sequence[float], *, level: float = 0.95,
-                   resamples: int = 2000, seed: int = 0) -> tuple[float, float] | None:
-    """The `level` bootstrap interval (percentile method) of median(ours) ÷ median(theirs), or None with
-    fewer than two calls of either: how far the ratio could move with other draws of the same calls.
-
-    The two sets of calls are resampled independently: they were timed in turns, not in pairs. A
-    sampling planner's spread (BIT* on corner-trap: 17 to 72 ms between the deciles of 40 runs) makes
-    the ratio of two medians of about 30 calls move by 15–20 % from run to run; the interval says so.
-    """
-    if min(len(ours_ms), len(theirs_ms)) < 2:
-        return None
-    result = stats.bootstrap(
-        (np.asarray(ours_ms), np.asarray(theirs_ms)),
-        lambda ours, theirs, axis: np.median(ours, axis=axis) / np.median(theirs, axis=axis),
-        vectorized=True, paired=False, n_resamples=resamples, confidence_level=level, method="percentile",
-        rng=np.random.default_rng(seed),
-    )
-    low, high = float(result.confidence_interval.low), float(result.confidence_interval.high)
-    return (low, high) if np.isfinite(low) and np.isfinite(high) else None
 
 
 # --------------------------------------------------------------------------- rendering
@@ -428,6 +433,20 @@ def _fit_rows(report: BenchReport) -> list[tuple[str, ...]]:
 
 
 def print_report(report: BenchReport, *, console: Console) -> None:
+    if report.maps is not None:
+        from cvxnav.bench.maps import map_tables, map_target_lines
+
+        for title, header, rows in map_tables(report.maps):
+            table = Table(title=title)
+            for column in header:
+                table.add_column(column)
+            for row in rows:
+                table.add_row(*row)
+            console.print(table)
+        for line in map_target_lines(report.maps):
+            console.print(f"• {line}")
+    if not report.scenarios:
+        return
     table = Table(title=f"cvxnav bench ({'quick' if report.quick else 'full'}, {report.repeats} repeats)")
     for column in _HEADER[:-1]:
         table.add_column(column, no_wrap=True)
@@ -468,6 +487,14 @@ def to_markdown(report: BenchReport) -> str:
     out = [f"Machine: {m.processor}, {m.cpus} CPUs, {m.platform}, Python {m.python}; "
            + ", ".join(f"{k} {v}" for k, v in m.packages.items()) + ".",
            f"Command: `{report.command}` ({report.wall_s:.0f} s wall).", ""]
+    if report.maps is not None:
+        from cvxnav.bench.maps import map_tables, map_target_lines
+
+        for title, header, rows in map_tables(report.maps):
+            out += [f"**{title}**", ""] + table(header, rows) + [""]
+        out += [f"- {line}" for line in map_target_lines(report.maps)] + [""]
+    if not report.scenarios:
+        return "\n".join(out) + "\n"
     out += table(_HEADER, _rows(report)) + [""]
     out += table(_FIT_HEADER, _fit_rows(report)) + [""]
     if report.scaling:

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import Clusters, Ellipsoids, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
+from schemas.messages import Clusters, Ellipsoids, Goals, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
 from schemas.scenario import Scenario
 from services.contract import Outputs
 from services.monitor.shapes import circle_outline, closed, ellipse_outline, footprint_outline
@@ -166,6 +166,12 @@ class RerunLogger:
         rec.log("goals", rr.Points2D(world.goals, radii=world.goal_tolerance_m, colors=[0, 160, 0],
                                      labels=[f"goal {i + 1}" for i in range(len(world.goals))]), static=True)
         self._robot_size_m = (world.robot_width_m, world.robot_length_m)
+
+    def _goals(self, goals: Goals) -> None:
+        """Goals that replace the scenario's (a robot's /goal_pose): drawn where the world's were."""
+        self._rec.log("goals", self._rr.Points2D(goals.goals, colors=[0, 160, 0],
+                                                 labels=[f"goal {i + 1}" for i in range(len(goals.goals))]),
+                      static=True)
 
     def _scan(self, scan: Scan) -> None:
         self._scan_seen_s[scan.header.seq] = time.monotonic()

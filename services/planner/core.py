@@ -20,9 +20,10 @@ import numpy as np
 from services.geometry import Ellipse, EllipseStack, FloatArray
 from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
 from services.planner.route import tangent_route
-from services.smoother.core import Smoothed
+from services.smoother.core import Smoothed, Verification
 
 _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel need no turn
+_SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,33 @@ class PathPlan:
     goal_indices: tuple[int, ...] = ()
     reason: str = ""
     iterations: int = 0
+
+
+def goals_ahead(start: FloatArray, goals: FloatArray, *, tolerance_m: float) -> FloatArray:
+    """The goals a path from `start` still has to reach, in order, without zero-length legs.
+
+    The goals from the first within `tolerance_m` of the start are reached there at once, as the run's
+    goal tracker counts them (every goal in order the car is within tolerance of), and a goal at the
+    point of the goal before it is reached with it: no optimiser can space points along a leg of length
+    zero. A path through the goals left passes within tolerance of every goal, the dropped ones included.
+    """
+    z = np.asarray(goals, dtype=float).reshape(-1, 2)
+    first = 0
+    while first < len(z) and math.dist(z[first], start) <= tolerance_m:
+        first += 1
+    z = z[first:]
+    if len(z) < 2:
+        return z
+    return z[np.concatenate([[True], np.linalg.norm(np.diff(z, axis=0), axis=1) > _SAME_POINT_M])]
+
+
+def stay_at_start(start: FloatArray, ellipses: list[Ellipse]) -> tuple[PathPlan, Smoothed]:
+    """The plan and curve of a robot whose every goal is within tolerance of its start: the start itself."""
+    point = np.asarray(start, dtype=float).reshape(1, 2)
+    level = float(EllipseStack.of(ellipses).levels(point).min()) if ellipses else math.inf
+    verification = Verification(level > 1.0, level, 0.0,
+                                "" if level > 1.0 else "start lies inside an obstacle's grown ellipse")
+    return PathPlan("ok", point), Smoothed(points=point, verification=verification)
 
 
 def intersected(points: FloatArray, ellipses: list[Ellipse], *, level: float = 1.0) -> FloatArray:

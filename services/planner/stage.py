@@ -16,7 +16,8 @@ tracks (`sim.core`): the planner plans forward motion only.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
-replaces the state or ellipsoids the planner holds.
+replaces the state or ellipsoids the planner holds. New ``Goals`` (a robot's /goal_pose, from the ROS
+2 bridge) replace the scenario's and drop the current plan: the next scan is planned to them.
 
 The current plan and the plan counter are the core's `state()`: the shell checkpoints them on every
 replan, and hands them to a restarted stage's `restore()`. Nothing unsafe rides on this: a reloaded plan is only
@@ -36,13 +37,13 @@ import numpy as np
 import shapely
 from pydantic import BaseModel
 
-from schemas.messages import Ellipsoids, RawPath, RobotState
+from schemas.messages import Ellipsoids, Goals, RawPath, RobotState
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
 from services.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
 from services.limits import Reach
-from services.planner.core import PathPlan, intersected, plan_until_verified
+from services.planner.core import PathPlan, goals_ahead, intersected, plan_until_verified
 from services.planner.refine import RefineSettings, SolverFailure, refine
 from services.smoother.core import Smoothed, smooth
 
@@ -249,6 +250,12 @@ class PlannerStage:
         may arrive first; pairing them by scan (RobotState.header.seq == Ellipsoids.scan_seq) makes
         the answer independent of arrival order, and a lockstep run deterministic.
         """
+        if isinstance(message, Goals):
+            goals = np.asarray(message.goals, dtype=float).reshape(-1, 2)
+            self.config.reach.check_goals(goals, what="goals")
+            self.config = replace(self.config, goals=goals)
+            self.plan, self.plan_goal_base = None, 0
+            return []
         if isinstance(message, RobotState):
             self._check_state(message)
             self.robot_state = message
@@ -277,7 +284,9 @@ class PlannerStage:
             raise StageInputError("every goal is already reached")
         config = self.config
         position = np.array([state.pose.x_m, state.pose.y_m])
-        goals = config.goals[goal_base:]
+        goals = goals_ahead(position, config.goals[goal_base:], tolerance_m=config.goal_tolerance_m)
+        if not len(goals):  # the sim counts them reached before it sends the state
+            raise StageInputError(f"every goal from {goal_base} on is within tolerance of the robot: reached")
         sensed = ellipses_from_msgs(message.ellipsoids)
         stack = EllipseStack.of(sensed)
         free = free_start_scales(stack, start=position, inflation_m=config.inflation_m)

@@ -5,18 +5,24 @@ It takes the place of the sim for a real robot (CONTRACTS.md §6). In: ``/scan``
 delivers (key expression + CDR payload), and from the pipeline ``smooth_path`` and ``ellipsoids``.
 Out: the pipeline's ``scan`` and ``state``, and ``/plan`` (nav_msgs/Path) and ``/cmd_vel`` (Twist).
 
-- A scan becomes world-frame hits from the newest odometry pose: the laser sits at the robot's
-  reference point looking along its heading (no TF), ray i at ``angle_min + i·angle_increment``. A ray
-  with no return is dropped: inf or NaN, below ``range_min``, above ``range_max``, or beyond the
-  scenario sensor's range (the range the planner's memory and checks assume).
+- A scan becomes world-frame hits from the robot's pose at its stamp, interpolated between the
+  odometry on either side (each within `BridgeConfig.max_pose_age_s`; a scan that arrives before the
+  odometry after it waits for it as long, as tf's message filter waits for a transform): the laser
+  sits at the robot's reference point looking along its heading (no TF), ray i at
+  ``angle_min + i·angle_increment``. A ray with no return is
+  dropped: inf or NaN, below ``range_min``, above ``range_max``, or beyond the scenario sensor's range
+  (the range the planner's memory and checks assume).
 - Each odometry message gives the robot state and one ``/cmd_vel``, so commands flow at the odometry
-  rate: the sim's path tracker (`sim.controller.PurePursuit`) on the verified path, turned into the
-  body twist that drives the footprint centre on the same arc, or zero when braking. The robot brakes
-  with no verified path, on a plan older than `BridgeConfig.stale_after_s` (robot time), while a stage is
-  down (then until a plan answers a scan sent after it is back), when the odometry falls silent
-  (`tick`), and after any rejected input, until the next verified plan.
-- Every path is checked before it is followed by the sim's guard (`sim.guard.PathGuard`, the newest
-  grown ellipses) from the pose of the scan it answers, and re-checked when newer ellipses arrive.
+  rate: the sim's path tracker (`services.drive.controller.PurePursuit`) on the verified path, turned
+  into the body twist that drives the footprint centre on the same arc, or zero when braking. The
+  robot brakes with no verified path, on a plan older than `BridgeConfig.stale_after_s` (robot time),
+  while a stage is down (then until a plan answers a scan sent after it is back), when the odometry
+  falls silent (`tick`), and after any rejected input, until the next verified plan.
+- Every path is checked before it is followed by the sim's guard (`services.drive.guard.PathGuard`,
+  the newest grown ellipses) from where the robot is, and re-checked when newer ellipses arrive. A
+  path waits (`held`) until the guard knows the ellipses of its own scan and of every scan received
+  `BridgeConfig.guard_window_s` before: a robot that has driven into view of an obstacle for that long
+  is not handed a path checked only against older ellipses.
 
 Rejected, with a one-line reason in `BridgeOutput.error` (the bridge brakes and carries on): a key
 whose type or hash is not the topic's, malformed CDR, a scan with more rays than the scenario's sensor,
@@ -26,24 +32,24 @@ non-finite poses or twists, an odometry frame that changes mid-run, a goal or ma
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.contract import StageInputError
 from schemas.messages import Ellipsoids, Header, Point, Pose2D, RobotState, Scan, SmoothPath
 from schemas.scenario import Scenario
+from services.contract import StageInputError
+from services.drive.controller import GoalTracker, PurePursuit
+from services.drive.guard import PathGuard, ahead
+from services.drive.vehicle import VehicleLimits, VehicleState
 from services.limits import Reach, check_count
 from services.ros2 import typesupport
-from services.ros2.interface import BRIDGE_TOPICS
+from services.ros2.interface import BRIDGE_TOPICS, MAX_MAP_CELLS
 from services.ros2.wire import node_namespace, resolve_topic, topic_key
-from sim.controller import GoalTracker, PurePursuit
-from sim.guard import PathGuard, ahead
-from sim.vehicle import VehicleLimits, VehicleState
 
-_SCANS_KEPT = 256  # recent scans' poses and stamps, by seq (a path is checked from its scan's pose)
-MAX_MAP_CELLS = 4096 * 4096  # a /map larger than this is refused (64 MiB of int8)
+_SCANS_KEPT = 256  # recent scans' stamps and receive times, by seq (the paths that answer them)
+_ODOMETRY_KEPT = 256  # recent odometry, to place a scan at the pose of its stamp
 
 
 @dataclass(frozen=True)
@@ -59,8 +65,12 @@ class BridgeConfig:
     inflation_m: float
     keep_out_m: float
     stale_after_s: float = 1.5  # robot time: a plan answering an older scan is not followed
-    max_pose_age_s: float = 0.5  # a scan is placed with odometry at most this far from it in time
+    max_pose_age_s: float = 0.5  # a scan is placed with odometry at most this far from it in time, and waits as long
+    # Receive clock: a path waits for the ellipses of every scan received this long before (half a second,
+    # less a tenth for the network between the robot's other nodes and the bridge).
+    guard_window_s: float = 0.4
     odom_timeout_s: float = 1.0  # receive clock: odometry silent this long, the robot brakes
+    command_period_s: float = 0.5  # receive clock: the longest between two /cmd_vel (a base's usual timeout)
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, *, domain_id: int = 0, namespace: str = "/") -> BridgeConfig:
@@ -100,6 +110,7 @@ class BridgeOutput:
     pipeline: list[tuple[str, Scan | RobotState]] = field(default_factory=list)
     ros: list[tuple[str, object]] = field(default_factory=list)  # (BRIDGE_TOPICS name, rosbags message)
     error: str | None = None  # why the input was rejected (one line); the robot brakes
+    refused: str | None = None  # the input topic the error is about
     goals: tuple[Point, ...] | None = None  # new goals from /goal_pose, for the planner
     known_map: KnownMap | None = None  # a new /map
 
@@ -113,8 +124,16 @@ class _Odometry:
 
 
 @dataclass(frozen=True)
+class _Waiting:
+    """A scan not yet placed: the odometry from after its stamp has not arrived yet."""
+
+    message: object
+    stamp_s: float
+    received_s: float
+
+
+@dataclass(frozen=True)
 class _ScanRecord:
-    position: tuple[float, float]
     stamp: object  # the scan's builtin_interfaces/Time, reused for the /plan that answers it
     stamp_s: float
     received_s: float
@@ -161,16 +180,21 @@ class Ros2Bridge:
         self.goals = GoalTracker(goals=config.goals, tolerance_m=config.goal_tolerance_m)
         self.guard = PathGuard(inflation_m=config.inflation_m, keep_out_m=config.keep_out_m)
         self.frame_id: str | None = None  # the odometry's frame, latched from the first message
-        self.odom: _Odometry | None = None
+        self.odom: _Odometry | None = None  # the newest
+        self.odometry: deque[_Odometry] = deque(maxlen=_ODOMETRY_KEPT)
+        self.waiting: deque[_Waiting] = deque()  # scans in arrival order, waiting for their odometry
         self.steering_rad = 0.0  # the tracker's model of the wheels, moved at the steering rate limit
         self.scan_seq = 0  # the next scan's seq
         self.scans: OrderedDict[int, _ScanRecord] = OrderedDict()
         self.path: np.ndarray | None = None
+        self.held: tuple[SmoothPath, _ScanRecord, np.ndarray] | None = None  # a path waiting for its ellipses
         self.path_stamp_s = -math.inf  # the stamp of the scan the path answers
         self.progress_m: float | None = None
         self.resume_seq = 0  # answers to earlier scans are not followed (after a lost stage, a new goal)
         self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
         self.braking_reason = "no verified path yet"
+        self.last_command = self._twist(0.0, 0.0)  # the newest /cmd_vel, and when it went out
+        self.commanded_s = -math.inf
         self.latencies_ms: list[float] = []  # scan received → its smooth path received
         self.known_map: KnownMap | None = None
 
@@ -187,11 +211,11 @@ class Ros2Bridge:
                        "map": self._on_map}[topic]
             return handler(message, received_s=received_s)
         except (StageInputError, typesupport.CdrError) as error:
-            return self._rejected(f"{topic}: {error}")
+            return self._rejected(topic, f"{topic}: {error}", now_s=received_s)
 
-    def _rejected(self, reason: str) -> BridgeOutput:
-        self._brake(reason)
-        return BridgeOutput(ros=[("cmd_vel", self._twist(0.0, 0.0))], error=reason)
+    def _rejected(self, topic: str, reason: str, *, now_s: float) -> BridgeOutput:
+        self.held = None
+        return BridgeOutput(ros=self._brake(reason, now_s=now_s), error=reason, refused=topic)
 
     def _on_odom(self, message: object, *, received_s: float) -> BridgeOutput:
         frame = message.header.frame_id
@@ -217,13 +241,18 @@ class Ros2Bridge:
         stamp_s = ros_time_s(message.header.stamp)
         dt_s = stamp_s - self.odom.stamp_s if self.odom is not None else 0.0
         self.odom = _Odometry(pose=pose, speed_mps=float(speed), stamp_s=stamp_s, received_s=received_s)
+        self.odometry.append(self.odom)
         self.goals.update(x_m=pose.x_m, y_m=pose.y_m)
-        return BridgeOutput(pipeline=[("state", self._state())],
-                            ros=[("cmd_vel", self._command(dt_s=min(max(dt_s, 0.0), 1.0)))])
+        out = BridgeOutput(pipeline=self._planning(self._state()),
+                           ros=self._send(self._command(dt_s=min(max(dt_s, 0.0), 1.0), now_s=received_s),
+                                          now_s=received_s))
+        placed = self._place_scans(now_s=received_s)  # scans that waited for this odometry
+        out.pipeline += placed.pipeline
+        out.ros += placed.ros
+        out.error, out.refused = placed.error, placed.refused
+        return out
 
     def _on_scan(self, message: object, *, received_s: float) -> BridgeOutput:
-        if self.odom is None:
-            raise StageInputError("no odometry yet to place the scan")
         check_count(len(message.ranges), limit=self.config.max_rays, what="rays (the scenario's sensor.rays)")
         fields = {name: getattr(message, name) for name in ("angle_min", "angle_increment", "range_min", "range_max")}
         bad = [f"{name}={value}" for name, value in fields.items() if not math.isfinite(value)]
@@ -232,21 +261,70 @@ class Ros2Bridge:
         stamp_s = ros_time_s(message.header.stamp)
         if stamp_s < 0.0:
             raise StageInputError(f"header.stamp {stamp_s:.9g} s is negative")
-        apart_s = abs(stamp_s - self.odom.stamp_s)
-        if apart_s > self.config.max_pose_age_s:
-            raise StageInputError(f"stamped {stamp_s:.3f} s but the newest odometry is from {self.odom.stamp_s:.3f} s "
-                                  f"({apart_s:.3f} s apart > max_pose_age_s {self.config.max_pose_age_s:g})")
-        pose = self.odom.pose
+        self.waiting.append(_Waiting(message=message, stamp_s=stamp_s, received_s=received_s))
+        return self._place_scans(now_s=received_s)
+
+    def _place_scans(self, *, now_s: float) -> BridgeOutput:
+        """The waiting scans that the odometry now places, in order (`_pose_at`); the first that no
+        odometry will place any more is rejected."""
+        out = BridgeOutput()
+        while self.waiting:
+            scan = self.waiting[0]
+            # Final once the odometry from after it has come (it comes in order) or it has waited long enough.
+            final = (now_s - scan.received_s > self.config.max_pose_age_s
+                     or (self.odom is not None and self.odom.stamp_s >= scan.stamp_s))
+            pose = self._pose_at(scan.stamp_s, final=final)
+            if pose is None and not final:
+                break
+            self.waiting.popleft()
+            if pose is not None:
+                out.pipeline += self._placed(scan, pose=pose)
+                continue
+            rejected = self._rejected("scan", f"scan: {self._unplaced(scan.stamp_s)}", now_s=now_s)
+            rejected.pipeline = out.pipeline
+            return rejected
+        return out
+
+    def _pose_at(self, stamp_s: float, *, final: bool) -> Pose2D | None:
+        """The robot's pose at ``stamp_s``, interpolated between the odometry on either side of it, as tf
+        looks a transform up at a scan's stamp; None while odometry from after it may still come.
+
+        Both sides must lie within `max_pose_age_s` of it (one side only: its pose). Once no odometry
+        nearer after it can come (``final``), the odometry from before it alone places it."""
+        max_age_s = self.config.max_pose_age_s
+        before = max((o for o in self.odometry if o.stamp_s <= stamp_s), key=lambda o: o.stamp_s, default=None)
+        after = min((o for o in self.odometry if o.stamp_s >= stamp_s), key=lambda o: o.stamp_s, default=None)
+        before = before if before is not None and stamp_s - before.stamp_s <= max_age_s else None
+        after = after if after is not None and after.stamp_s - stamp_s <= max_age_s else None
+        if after is None:
+            return before.pose if final and before is not None else None
+        if before is None or after.stamp_s == before.stamp_s:
+            return after.pose
+        w = (stamp_s - before.stamp_s) / (after.stamp_s - before.stamp_s)
+        a, b = before.pose, after.pose
+        turn = math.remainder(b.theta_rad - a.theta_rad, 2.0 * math.pi)
+        return Pose2D(x_m=a.x_m + w * (b.x_m - a.x_m), y_m=a.y_m + w * (b.y_m - a.y_m),
+                      theta_rad=math.remainder(a.theta_rad + w * turn, 2.0 * math.pi))
+
+    def _unplaced(self, stamp_s: float) -> str:
+        """Why no odometry places a scan stamped ``stamp_s``."""
+        if not self.odometry:
+            return "no odometry yet to place the scan"
+        nearest = min(self.odometry, key=lambda o: abs(o.stamp_s - stamp_s))
+        return (f"stamped {stamp_s:.3f} s but the nearest odometry is from {nearest.stamp_s:.3f} s "
+                f"({abs(nearest.stamp_s - stamp_s):.3f} s apart > max_pose_age_s {self.config.max_pose_age_s:g})")
+
+    def _placed(self, scan: _Waiting, *, pose: Pose2D) -> list[tuple[str, Scan | RobotState]]:
+        message, stamp_s, received_s = scan.message, scan.stamp_s, scan.received_s
         hits = scan_hits(message, pose=pose, max_range_m=self.config.max_range_m)
         seq = self.scan_seq
         self.scan_seq += 1
-        self.scans[seq] = _ScanRecord(position=(pose.x_m, pose.y_m), stamp=message.header.stamp, stamp_s=stamp_s,
-                                      received_s=received_s)
+        self.scans[seq] = _ScanRecord(stamp=message.header.stamp, stamp_s=stamp_s, received_s=received_s)
         while len(self.scans) > _SCANS_KEPT:
             self.scans.popitem(last=False)
         scan = Scan(header=Header(stamp_s=stamp_s, seq=seq), pose=pose,
                     points=[(float(x), float(y)) for x, y in hits])
-        return BridgeOutput(pipeline=[("state", self._state(pose=pose)), ("scan", scan)])
+        return [*self._planning(self._state(pose=pose)), ("scan", scan)]
 
     def _on_goal(self, message: object, *, received_s: float) -> BridgeOutput:
         if self.frame_id is None:
@@ -258,8 +336,8 @@ class Ros2Bridge:
             raise StageInputError(f"pose.position not finite: x={x}, y={y}")
         self.config.reach.check_pose(Pose2D(x_m=x, y_m=y, theta_rad=0.0), what="goal")
         self.goals = GoalTracker(goals=[(float(x), float(y))], tolerance_m=self.config.goal_tolerance_m)
-        self._brake(f"new goal ({x:.2f}, {y:.2f}): waiting for a plan to it", from_next_scan=True)
-        return BridgeOutput(ros=[("cmd_vel", self._twist(0.0, 0.0))], goals=tuple(self.goals.goals))
+        return BridgeOutput(ros=self._brake(f"new goal ({x:.2f}, {y:.2f}): waiting for a plan to it", now_s=received_s,
+                                            from_next_scan=True), goals=tuple(self.goals.goals))
 
     def _on_map(self, message: object, *, received_s: float) -> BridgeOutput:
         frame = message.header.frame_id
@@ -283,46 +361,72 @@ class Ros2Bridge:
 
     # ----------------------------------------------------------------------- pipeline inputs
 
-    def take_ellipsoids(self, message: Ellipsoids) -> BridgeOutput:
-        """Newer grown ellipses for the guard; the path being followed is re-checked against them."""
+    def take_ellipsoids(self, message: Ellipsoids, *, received_s: float) -> BridgeOutput:
+        """Newer grown ellipses for the guard; the path being followed is re-checked against them, and a
+        path held for them is checked and, if clear, published."""
         try:
             self._answering(message.scan_seq)
             self.config.reach.check_ellipses(message.ellipsoids, what="ellipsoids")
         except StageInputError as error:
-            return BridgeOutput(error=f"ellipsoids: {error}")
+            return BridgeOutput(error=f"ellipsoids: {error}", refused="ellipsoids")
         self.guard.know(message)
+        braked = []
         if self.path is not None and self.odom is not None:
             position = (self.odom.pose.x_m, self.odom.pose.y_m)
             reason = self.guard.check(ahead(self.path, position=position), start=position)
             if reason is not None:  # routine: the planner replans on the same ellipses
-                self._brake(f"newer obstacles: {reason}")
-        return BridgeOutput()
+                braked = self._brake(f"newer obstacles: {reason}", now_s=received_s)
+        out = self._release(received_s)
+        out.ros = braked + out.ros
+        return out
 
     def take_path(self, message: SmoothPath, *, received_s: float) -> BridgeOutput:
-        """The pipeline's answer to a scan: a path to follow (published on /plan), or a reason to brake."""
+        """The pipeline's answer to a scan: a path to follow (published on /plan), or a reason to brake.
+
+        A path is held until the guard knows the ellipses of its own scan and of every scan received
+        `BridgeConfig.guard_window_s` before now (`_release`)."""
         try:
             record = self._answering(message.scan_seq)
         except StageInputError as error:
-            return BridgeOutput(error=f"smooth_path: {error}")
+            return BridgeOutput(error=f"smooth_path: {error}", refused="smooth_path")
         self.latencies_ms.append(1e3 * (received_s - record.received_s))
         if self.missing or message.scan_seq < self.resume_seq:
             return BridgeOutput()
-        if message.status == "no_path":
-            self._brake(f"no path: {message.reason}")
+        if message.status == "no_path":  # nor is a path held for an older scan followed
+            self.held = None
+            return BridgeOutput(ros=self._brake(f"no path: {message.reason}", now_s=received_s))
+        points = np.asarray(message.points, dtype=float).reshape(-1, 2)
+        if (message.goal_index != self.goals.reached_count or len(points) < 2 or self.goals.done
+                or math.dist(points[-1], self.goals.goals[-1]) > self.config.goal_tolerance_m):
+            return BridgeOutput()  # planned for a goal passed or replaced: keep the current path until the replan
+        self.held = (message, record, points)
+        return self._release(received_s)
+
+    def _release(self, now_s: float) -> BridgeOutput:
+        """The held path checked by the guard and published, once the guard is current: it knows the
+        ellipses of the path's scan and of the newest scan received `guard_window_s` ago. Before that the
+        obstacles of a scan the robot has had a while may still be on their way through the pipeline."""
+        if self.held is None:
             return BridgeOutput()
-        if message.goal_index != self.goals.reached_count or len(message.points) < 2:
-            return BridgeOutput()  # planned for a goal already passed: keep the current path until the replan
-        points = np.asarray(message.points, dtype=float)
-        reason = self.guard.check(points, start=record.position)
+        message, record, points = self.held
+        if self.guard.scan_seq < max(message.scan_seq, self._received_by(now_s - self.config.guard_window_s)):
+            return BridgeOutput()
+        self.held = None
+        # From where the robot is now: the planner may have planned from a pose newer than the scan's.
+        reason = self.guard.check(points, start=(self.odom.pose.x_m, self.odom.pose.y_m))
         heading = self.odom.pose.theta_rad if self.odom is not None else 0.0
         if reason is None and np.dot(points[1] - points[0], (math.cos(heading), math.sin(heading))) <= 0.0:
             reason = "the path starts against the robot's heading"
         if reason is not None:
-            self._brake(reason)
-            return BridgeOutput(error=f"smooth_path: plan {message.plan_id} for scan {message.scan_seq} not "
+            return BridgeOutput(ros=self._brake(reason, now_s=now_s), refused="smooth_path",
+                                error=f"smooth_path: plan {message.plan_id} for scan {message.scan_seq} not "
                                       f"followed: {reason}")
         self.path, self.path_stamp_s, self.progress_m = points, record.stamp_s, None
         return BridgeOutput(ros=[("plan", self._plan_message(points, stamp=record.stamp))])
+
+    def _received_by(self, t_s: float) -> int:
+        """The newest scan received by time ``t_s`` (receive clock); -1 for none."""
+        return max((seq for seq, record in self.scans.items() if record.received_s <= t_s), default=-1)
 
     def _answering(self, seq: int) -> _ScanRecord:
         record = self.scans.get(seq)
@@ -330,30 +434,52 @@ class Ros2Bridge:
             raise StageInputError(f"answers scan {seq}, which the bridge did not send (or long ago)")
         return record
 
-    def stage_lost(self, stage: str) -> None:
+    def stage_lost(self, stage: str, *, now_s: float) -> BridgeOutput:
         """A pipeline stage's token is gone: brake, and follow only answers to scans sent from now on."""
         self.missing.add(stage)
-        self._brake(f"stage {stage} is down", from_next_scan=True)
+        return BridgeOutput(ros=self._brake(f"stage {stage} is down", now_s=now_s, from_next_scan=True))
 
     def stage_back(self, stage: str) -> None:
         self.missing.discard(stage)
 
     def tick(self, *, received_s: float) -> BridgeOutput:
-        """A timer at the odometry rate: odometry silent for `odom_timeout_s` means brake, now."""
-        if self.odom is not None and received_s - self.odom.received_s <= self.config.odom_timeout_s:
-            return BridgeOutput()
-        self._brake("no odometry")
-        return BridgeOutput(ros=[("cmd_vel", self._twist(0.0, 0.0))])
+        """A timer: odometry silent for `odom_timeout_s` means brake, now; no /cmd_vel for
+        `command_period_s` means the last one again (zero if the robot brakes since), so the base hears
+        one before it times its command out; a scan that waited for its odometry longer than
+        `max_pose_age_s` is rejected."""
+        out = self._place_scans(now_s=received_s)
+        if self.odom is None or received_s - self.odom.received_s > self.config.odom_timeout_s:
+            out.ros = self._brake("no odometry", now_s=received_s)
+        elif not out.ros and received_s - self.commanded_s >= self.config.command_period_s:
+            driving = self.path is not None and not self.goals.done and not self.missing
+            out.ros = self._send(self.last_command if driving else self._twist(0.0, 0.0), now_s=received_s)
+        return out
+
+    def stopped(self, *, now_s: float) -> BridgeOutput:
+        """The bridge is stopping: the zero twist to leave the robot with."""
+        return BridgeOutput(ros=self._brake("the bridge stopped", now_s=now_s))
 
     # ----------------------------------------------------------------------- outputs
 
-    def _brake(self, reason: str, *, from_next_scan: bool = False) -> None:
-        """Drop the path. ``from_next_scan``: answers to scans already sent no longer count either (they
-        were planned for a lost stage's pipeline or an old goal)."""
+    def _brake(self, reason: str, *, now_s: float, from_next_scan: bool = False) -> list[tuple[str, object]]:
+        """Drop the path; the zero command to publish now. ``from_next_scan``: answers to scans already
+        sent no longer count either (they were planned for a lost stage's pipeline or an old goal)."""
         self.path = None
         self.braking_reason = reason
         if from_next_scan:
             self.resume_seq = self.scan_seq
+            self.held = None
+        return self._send(self._twist(0.0, 0.0), now_s=now_s)
+
+    def _send(self, twist: object, *, now_s: float) -> list[tuple[str, object]]:
+        """A /cmd_vel to publish, remembered for the timer to repeat."""
+        self.last_command, self.commanded_s = twist, now_s
+        return [("cmd_vel", twist)]
+
+    def _planning(self, state: RobotState) -> list[tuple[str, RobotState]]:
+        """The state for the planner, while there is a goal to plan for (the scans go on regardless: the
+        sensing stage's memory keeps growing for the next goal)."""
+        return [] if self.goals.done else [("state", state)]
 
     def _state(self, *, pose: Pose2D | None = None) -> RobotState:
         """The robot state for the planner; its seq is the newest scan's, which the planner pairs it with."""
@@ -364,12 +490,12 @@ class Ros2Bridge:
                           goal_index=min(goals.reached_count, len(goals.goals) - 1),
                           goals_reached=goals.reached_count, done=goals.done)
 
-    def _command(self, *, dt_s: float) -> object:
+    def _command(self, *, dt_s: float, now_s: float) -> object:
         """The tracker's twist on a fresh path, else zero; the wheels' model follows at the rate limit."""
         odom = self.odom
         age_s = odom.stamp_s - self.path_stamp_s
         if self.path is not None and not (0.0 <= age_s <= self.config.stale_after_s):
-            self._brake(f"the plan is {age_s:.2f} s old (stale_after_s {self.config.stale_after_s:g})")
+            self._brake(f"the plan is {age_s:.2f} s old (stale_after_s {self.config.stale_after_s:g})", now_s=now_s)
         if self.path is None or self.goals.done or self.missing:
             return self._twist(0.0, 0.0)
         state = VehicleState(x_m=odom.pose.x_m, y_m=odom.pose.y_m, theta_rad=odom.pose.theta_rad,

@@ -15,10 +15,8 @@ it describes, `rmw_zenoh_cpp/src/detail/`:
   each field left empty where it equals rmw_zenoh's default profile (``qos.cpp``);
 - an entity's GID (``Entity::Entity``): the XXH3-128 hash of its liveliness key, low 64 bits then high
   64 bits, each little-endian (16 bytes, ``RMW_GID_STORAGE_SIZE``);
-- the attachment of every sample (``attachment_helpers.cpp``): sequence number (int64), source timestamp
-  (int64 ns since the epoch), GID (16 bytes), written with the Zenoh serialization format (zenoh-ext),
-  so 8 + 8 + 1 (the GID's LEB128 length, 16) + 16 bytes, all little-endian. rmw_zenoh's subscriptions
-  drop a sample that has none.
+- the attachment of every sample, serialized with zenoh-ext, is the shell's (``services.shell.ros2``):
+  this module is pure.
 
 Types are the message types of rosbags' typestore (``services.ros2.typesupport``).
 """
@@ -30,7 +28,6 @@ from dataclasses import dataclass, replace
 from enum import Enum, IntEnum
 
 import xxhash
-import zenoh.ext
 
 ADMIN_SPACE = "@ros2_lv"
 SLASH_REPLACEMENT = "%"
@@ -372,35 +369,3 @@ def parse_token(key_expr: str) -> GraphEntity:
         raise TokenError(str(error)) from None
     return replace(entity, topic=demangle(parts[9]), msgtype=msgtype, type_hash=demangle(parts[11]),
                    qos=QosProfile.from_keyexpr(parts[12]))
-
-
-# --------------------------------------------------------------------------- the attachment
-
-
-@dataclass(frozen=True)
-class Attachment:
-    """The metadata rmw_zenoh sends with every sample and its subscriptions require."""
-
-    sequence_number: int  # the publisher's, from 1
-    source_timestamp_ns: int  # when it was published, ns since the Unix epoch
-    source_gid: bytes  # the publisher's GID
-
-    def __post_init__(self) -> None:
-        if len(self.source_gid) != GID_BYTES:
-            raise ValueError(f"a GID has {GID_BYTES} bytes, got {len(self.source_gid)}")
-
-    def to_bytes(self) -> bytes:
-        """Serialised as rmw_zenoh's ``AttachmentData::serialize_to_zbytes`` (zenoh-ext format)."""
-        value = (zenoh.ext.Int64(self.sequence_number), zenoh.ext.Int64(self.source_timestamp_ns),
-                 bytes(self.source_gid))
-        return zenoh.ext.z_serialize(value).to_bytes()
-
-    @classmethod
-    def from_bytes(cls, data: bytes) -> Attachment:
-        """Parse an attachment; ValueError (one line) if it is not rmw_zenoh's."""
-        try:
-            sequence, stamp, gid = zenoh.ext.z_deserialize(tuple[zenoh.ext.Int64, zenoh.ext.Int64, bytes],
-                                                           zenoh.ZBytes(bytes(data)))
-        except zenoh.ext.ZDeserializeError as error:
-            raise ValueError(f"not an rmw_zenoh attachment ({len(data)} bytes): {error}") from None
-        return cls(sequence_number=int(sequence), source_timestamp_ns=int(stamp), source_gid=bytes(gid))

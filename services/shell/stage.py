@@ -21,13 +21,20 @@ rejected input publishes nothing else, so the last good outputs stand. The statu
 input's stamp (``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never
 as the verdict on a real scan.
 
+Frames: the keys carry world coordinates; a core computes in a local frame near the scenario
+(``services.convert.LocalFrame``), and the shell moves every message between the two as it hands it
+to the core and publishes what the core returns, so no core sees a coordinate of 10⁶ m.
+
 Bounds: a payload larger than ``max_payload_bytes`` (``cvxnav service --max-payload-bytes``, default
 1 MiB) is rejected before it is decoded; each core bounds what a decoded message may hold (points
 per scan, per cluster set, per path; ellipses per set; coordinates within the scenario's extent).
 
-Every key the shell declares is a wiring-table topic carrying a JSON model; a process that must also
-speak keys outside that space (a ROS 2 bridge: CDR payloads, its own liveliness tokens) gets them from
-the same session through more ``Inbox`` rings, without a second shell.
+Every key the shell declares under the prefix is a wiring-table topic carrying a JSON model. A process
+that is also a ROS 2 node (``StageSpec.ros2``, the bridge) speaks rmw_zenoh's keys outside that space
+from the same session, without a second shell (``services.shell.ros2``): the node and its topics with
+their liveliness tokens, each input sample handed to the core undecoded (``Bridging.receive``, after
+the topic's own payload cap) in arrival order with the process's other inputs, and the core's ``Raw``
+outputs published with the rmw attachment. Its rejected inputs are reported on its status key too.
 """
 
 from __future__ import annotations
@@ -59,8 +66,10 @@ from schemas.wiring import (
     status_key,
 )
 from services.contract import (
+    Bridging,
     Listening,
     Outputs,
+    Raw,
     Refusal,
     Scheduled,
     StageCore,
@@ -70,9 +79,11 @@ from services.contract import (
     TickingCore,
     Watching,
 )
+from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
 from services.shell.watchdog import Progress
+from services.shell.ros2 import BridgePorts
 
 logger = logging.getLogger(__name__)
 
@@ -163,6 +174,7 @@ def install_signal_handlers(stop_event: threading.Event) -> None:
 
 _STATUS = "\0status"  # queue tags of the inputs that are not topics
 _ALIVE = "\0alive"
+_ROS = "\0ros/"  # + the port: a ROS 2 topic's sample
 DRAIN_S = 1.0  # a stopping source or sink handles what already arrived, until quiet or this long
 # After a stop, how long the process waits for its worker (a solve in progress) before it exits without
 # it: within the 2 s an operator, systemd or `docker stop` may expect, with room for the interpreter's exit.
@@ -213,8 +225,10 @@ class _Shell:
         max_payload_bytes: int,
         clock: Callable[[], float],
         checkpoint: Checkpoint | None,
+        frame: LocalFrame = LocalFrame(),
     ) -> None:
         self._spec = spec
+        self._frame = frame
         self._core = core
         self._prefix = prefix
         self._publishers = publishers
@@ -226,6 +240,8 @@ class _Shell:
         self.scheduled = isinstance(core, Scheduled)
         self._watching, self._listening = isinstance(core, Watching), isinstance(core, Listening)
         self._latched: dict[str, str] = {}  # topic -> the last payload published on it
+        self.ros: BridgePorts | None = None  # a ROS 2 node's topics (StageSpec.ros2)
+        self._raw: tuple[str, str] | None = None  # (port, key) of the ROS sample being handled
         self._status_seq = 0
         self._last_stamp_s = 0.0  # of the last input the core accepted: the status's sim time
         self._input_stamp_s: float | None = None  # of the input being handled, once decoded
@@ -256,6 +272,8 @@ class _Shell:
                            input_key=None, report_ok=False)
         elif sample.kind != zenoh.SampleKind.PUT:
             return
+        elif tag.startswith(_ROS):
+            self._handle_raw(port=tag[len(_ROS):], sample=sample)
         elif tag == _STATUS:
             stage = stage_of_status_key(self._prefix, str(sample.key_expr))
             if stage is None or not self._listening:
@@ -284,6 +302,24 @@ class _Shell:
                    report_ok=self._spec.reports_ok)
         return True
 
+    def _handle_raw(self, *, port: str, sample: zenoh.Sample) -> None:
+        """One sample of a ROS 2 input topic, handed to the core as bytes once within the topic's cap."""
+        input_key = str(sample.key_expr)
+        started = time.perf_counter()
+        self._input_stamp_s = None
+        size, cap = len(sample.payload), self.ros.max_payload_bytes(port)
+        if size > cap:
+            self._report(input_key=input_key, started=started,
+                         reason=one_line(f"{input_key}: payload of {size} bytes exceeds max_payload_bytes={cap}"))
+            return
+        core: Bridging = self._core  # type: ignore[assignment]  # run_stage's contract
+        self._raw = (port, input_key)
+        try:
+            self._step(lambda: core.receive(port=port, key_expr=input_key, payload=sample.payload.to_bytes(),
+                                            now_s=self._clock()), input_key=input_key, report_ok=False)
+        finally:
+            self._raw = None
+
     def tick(self) -> None:
         """One timer step; reports a status only when it fails (a tick has no input to judge)."""
         core: TickingCore = self._core  # type: ignore[assignment]  # run_stage's contract
@@ -311,7 +347,7 @@ class _Shell:
         started = time.perf_counter()
         where = input_key or "tick"
         try:
-            messages, refusals = self._checked(step())
+            messages, raws, refusals = self._checked(step())
             if self._checkpoint is not None:  # before the outputs that depend on the state
                 self._checkpoint.save(self._core)  # type: ignore[arg-type]  # run_stage's contract
         except (DecodeError, StageInputError) as error:
@@ -323,40 +359,54 @@ class _Shell:
                          reason=one_line(f"{where}: {type(error).__name__}: {error}"))
             return
         for out_topic, message in messages:
-            payload = message.model_dump_json()
+            payload = self._frame.to_world(message).model_dump_json()
             self._publishers[out_topic].put(payload)
             if TOPICS[out_topic].latched:
                 self._latched[out_topic] = payload
+        for port, raw in raws:
+            self.ros.put(port, raw.payload)
         if self._input_stamp_s is not None:
             self._last_stamp_s = self._input_stamp_s
         if report_ok:
             self._report(input_key=input_key, started=started, reason=None)
         self._input_stamp_s = None  # a refusal concerns an earlier input, not this one's stamp
         for in_topic, refusal in refusals:
-            self._report(input_key=key(self._prefix, in_topic), started=started, reason=one_line(refusal.reason))
+            self._report(input_key=self._refused_key(in_topic), started=started, reason=one_line(refusal.reason))
+
+    def _refused_key(self, topic: str) -> str:
+        """The key of a refused input: a topic's under the prefix, a ROS sample's own (or its topic's)."""
+        if topic in self._spec.subscribes:
+            return key(self._prefix, topic)
+        return self._raw[1] if self._raw is not None and self._raw[0] == topic else self.ros.key(topic)
 
     def _process(self, *, topic: str, message: BaseModel) -> Outputs:
         header = getattr(message, "header", None)
         if isinstance(header, Header):
             self._input_stamp_s = header.stamp_s
-        return self._core.process(topic=topic, message=message, now_s=self._clock())
+        return self._core.process(topic=topic, message=self._frame.to_local(message), now_s=self._clock())
 
-    def _checked(self, outputs: Outputs) -> tuple[list[tuple[str, BaseModel]], list[tuple[str, Refusal]]]:
-        """A core's output batch split into messages and refusals; one that breaks the wiring table is
-        rejected before any of it is published."""
-        messages, refusals = [], []
+    def _checked(self, outputs: Outputs) -> tuple[list[tuple[str, BaseModel]], list[tuple[str, Raw]],
+                                                  list[tuple[str, Refusal]]]:
+        """A core's output batch split into messages, raw bytes and refusals; one that breaks the wiring
+        table (or the ROS interface) is rejected before any of it is published."""
+        messages, raws, refusals = [], [], []
         for topic, item in outputs:
             if isinstance(item, Refusal):
-                if topic not in self._spec.subscribes:
+                if topic not in self._spec.subscribes and not (self.ros is not None and topic in self.ros.inputs):
                     raise TypeError(f"stage {self._spec.name} does not read {topic!r}")
                 refusals.append((topic, item))
+                continue
+            if isinstance(item, Raw):
+                if self.ros is None or not self.ros.publishes(topic):
+                    raise TypeError(f"stage {self._spec.name} publishes no ROS topic {topic!r}")
+                raws.append((topic, item))
                 continue
             if topic not in self._publishers:
                 raise TypeError(f"stage {self._spec.name} does not publish {topic!r}")
             if type(item) is not model_for(topic):
                 raise TypeError(f"{topic} carries {model_for(topic).__name__}, not {type(item).__name__}")
             messages.append((topic, item))
-        return messages, refusals
+        return messages, raws, refusals
 
     def _report(self, *, input_key: str | None, started: float, reason: str | None) -> None:
         stamp_s = self._last_stamp_s if self._input_stamp_s is None else self._input_stamp_s
@@ -400,6 +450,7 @@ def run_stage(
     ready_event: threading.Event | None = None,
     state_dir: Path | None = None,
     progress: Progress | None = None,
+    frame: LocalFrame = LocalFrame(),
 ) -> None:
     """Run ``stage`` (a process of the wiring table) with ``core`` until ``stop_event`` is set, or the
     core is done (a ``Scheduled`` source whose run ended).
@@ -407,8 +458,10 @@ def run_stage(
     The session owns every declaration; all are undeclared, and the liveliness token withdrawn,
     before this returns. A ``Scheduled`` core ticks when it asks to; another ``TickingCore`` every
     ``tick_period_s``, between inputs. ``ready_event`` is set once the process is declared. With
-    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there. ``progress``
-    is told when each pass of the loop begins (the heartbeat's evidence, ``services.shell.watchdog``).
+    ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there. The core
+    works in ``frame`` (built from ``frame.scenario_to_local``): every message it is handed is moved
+    into it, every one it publishes back into the world frame of the keys. ``progress`` is told when
+    each pass of the loop begins (the heartbeat's evidence, ``services.shell.watchdog``).
     """
     progress = progress or Progress()
     spec = PROCESSES[stage]
@@ -431,7 +484,7 @@ def run_stage(
             status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()),
             congestion_control=zenoh.CongestionControl.DROP))
         shell = _Shell(spec=spec, core=core, prefix=prefix, publishers=publishers, status_publisher=status_publisher,
-                       max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint)
+                       max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint, frame=frame)
         inbox = Inbox()
         queue = inbox.ring(QUEUE_CAPACITY)  # a source's or sink's inputs; a stage's statuses and liveliness
         rings = {} if spec.every_input else {topic: inbox.ring(INPUT_RING) for topic in spec.subscribes}
@@ -443,6 +496,12 @@ def run_stage(
         if spec.watches:
             declare(session.liveliness().declare_subscriber(alive_key(prefix), inbox.tagged(queue, _ALIVE),
                                                              history=True))
+        if spec.ros2:  # a source: its ROS inputs join the one queue
+            if not isinstance(core, Bridging):
+                raise TypeError(f"stage {stage} is a ROS 2 node, but its core {type(core).__name__} does not bridge")
+            shell.ros = BridgePorts(session, domain_id=core.domain_id, namespace=core.namespace,
+                                    deliver=lambda port, sample: queue((_ROS + port, sample)))
+            declarations.callback(shell.ros.close)
         for topic in spec.publishes:
             if TOPICS[topic].latched:
                 declare(session.declare_queryable(key(prefix, topic), shell.answer(topic)))

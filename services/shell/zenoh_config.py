@@ -8,7 +8,9 @@ machine (and tests on loopback) need no router and do not see unrelated sessions
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -20,6 +22,56 @@ MODES: tuple[Mode, ...] = ("peer", "client", "router")
 # How often a session tries its `connect` endpoints again once a link is lost: Zenoh's default backs off
 # to 4 s, so a client found a restarted router up to 4 s after it was back (and the car stood as long).
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+
+# Zenoh's link protocols (zenoh/io/zenoh-links): those whose address is host:port, and the rest.
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+_HOSTNAME = re.compile(r"(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*\.?")
+
+
+def check_endpoint(text: str) -> str:
+    """`text` if it is a Zenoh endpoint `<protocol>/<address>[?<metadata>][#<config>]` whose address can be
+    one; else ValueError saying why, in one line.
+
+    Zenoh takes any such string into its config and fails only when the session opens (with a
+    traceback's worth of context); checked here, a typo is refused before anything starts. An IP
+    protocol's address is host:port: a port 0–65535, and an IPv4 literal, a bracketed IPv6 literal or a
+    host name (RFC 1123; one made of digits and dots is an IPv4 literal, so 999.1.1.1 is refused).
+    """
+    protocol, slash, rest = text.partition("/")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if not slash or not protocol or not address:
+        raise ValueError(f"{text!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if protocol in OTHER_PROTOCOLS:
+        return text
+    if protocol not in IP_PROTOCOLS:
+        raise ValueError(f"{text!r}: unknown protocol {protocol!r} (known: {', '.join(IP_PROTOCOLS + OTHER_PROTOCOLS)})")
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"{text!r}: the address must be HOST:PORT with a port in 0..65535, e.g. {protocol}/127.0.0.1:7447")
+    try:
+        if host.startswith("[") and host.endswith("]"):
+            ipaddress.IPv6Address(host[1:-1])
+        elif re.fullmatch(r"[0-9.]+", host):
+            ipaddress.IPv4Address(host)
+        elif not _HOSTNAME.fullmatch(host):
+            raise ValueError(f"{host!r} is not a host name")
+    except ValueError as error:
+        raise ValueError(f"{text!r}: not an IP address or host name: {error}") from None
+    return text
+
+
+def endpoint_argument(text: str) -> str:
+    """`check_endpoint` as an argparse type: a bad endpoint is the usual one-line usage error (exit 2)."""
+    try:
+        return check_endpoint(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def zenoh_reason(error: Exception) -> str:
+    """A Zenoh error's message without the Rust source locations it carries."""
+    return re.sub(r"\s+at /\S+?\.rs:\d+\.?", "", str(error)).strip()
 
 
 def build_zenoh_config(
@@ -61,11 +113,11 @@ def config_from_doc(doc: dict) -> zenoh.Config:
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument(
-        "--connect", "-e", metavar="ENDPOINT", action="append", default=[],
+        "--connect", "-e", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
         help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
     )
     group.add_argument(
-        "--listen", "-l", metavar="ENDPOINT", action="append", default=[],
+        "--listen", "-l", metavar="ENDPOINT", action="append", default=[], type=endpoint_argument,
         help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
     )
     group.add_argument(

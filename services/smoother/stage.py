@@ -8,19 +8,20 @@ The smoothing function is a parameter (`SmoothFn`), so an alternative smoother (
 `services.smoother.coarse`) reuses this shell and the same verification.
 
 A RawPath is bounded before any work (``services.limits``): at most ``MAX_PATH_POINTS`` points, all
-within the map's reach, and an ellipse set bounded in size and reach.
+within the map's reach, and an ellipse set bounded in size and reach. New ``Goals`` (a robot's
+/goal_pose, from the ROS 2 bridge) replace the scenario's, as in the planner.
 """
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import RawPath, SmoothPath
+from schemas.messages import Goals, RawPath, SmoothPath
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError
 from services.convert import answer_header, ellipses_from_msgs
@@ -65,6 +66,11 @@ class SmootherStage:
         return cls(config=SmootherConfig.from_scenario(scenario))
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        if isinstance(message, Goals):
+            goals = np.asarray(message.goals, dtype=float).reshape(-1, 2)
+            self.config.reach.check_goals(goals, what="goals")
+            self.config = replace(self.config, goals=goals)
+            return []
         if not isinstance(message, RawPath):
             raise StageInputError(f"smoother does not handle {topic!r}")
         config = self.config

@@ -18,6 +18,7 @@ from cvxnav.supervisor import free_ports, stop_processes
 from schemas.wiring import default_prefix
 from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
+from stage_processes import stage_pids
 
 PREFIX = default_prefix()
 ALL_STAGES = ("sensing", "ellipsoids", "planner", "smoother", "sim")
@@ -31,16 +32,7 @@ class LiveRun:
 
     def stage_pids(self) -> dict[str, int]:
         """The run's child processes by stage name (`python -m cvxnav service NAME ...`)."""
-        pids = {}
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-                argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
-            except (OSError, IndexError, ValueError):
-                continue
-            if parent == self.process.pid and b"service" in argv:
-                pids[argv[argv.index(b"service") + 1].decode()] = int(stat.parent.name)
-        return pids
+        return stage_pids(self.process.pid)
 
     @staticmethod
     def memory_kib(pid: int) -> dict[str, int]:

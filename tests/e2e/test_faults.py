@@ -28,8 +28,8 @@ from schemas.files import RunFile
 from schemas.messages import RobotState, decode
 from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
+from services.drive.vehicle import VehicleLimits
 from services.shell.zenoh_config import build_zenoh_config
-from sim.vehicle import VehicleLimits
 from procfs import alive
 
 PAPER = bundled_scenario()

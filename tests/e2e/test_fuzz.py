@@ -34,6 +34,7 @@ from schemas.messages import (
     Clusters,
     EllipsoidMsg,
     Ellipsoids,
+    Goals,
     Header,
     Message,
     Pose2D,
@@ -47,7 +48,7 @@ from schemas.messages import (
 )
 from schemas.scenario import bundled_scenario
 from schemas.wiring import TOPICS, default_prefix, key, model_for, status_key, subscribers_of
-from services.limits import DEFAULT_MAX_PAYLOAD_BYTES, MAX_ELLIPSES, MAX_PATH_POINTS
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES, MAX_ELLIPSES, MAX_GOALS, MAX_PATH_POINTS
 
 pytestmark = pytest.mark.slow
 
@@ -119,6 +120,10 @@ ABSURD: dict[str, list[Message]] = {
         World(header=header(), scenario="fuzz", bounds_min=(0.0, 0.0), bounds_max=(1.0, 1.0), robot_width_m=0.3,
               robot_length_m=0.6, start=pose(), goals=[(OFF_MAP, 0.0)], goal_tolerance_m=0.3,
               polygons=[[(1e9, 1e9)]], circles=[CircleMsg(center=(0.0, 0.0), radius_m=1e9)]),
+    ],
+    "goals": [
+        Goals(header=header(), goals=[(1.0, 1.0), (OFF_MAP, 0.0)]),
+        Goals(header=header(), goals=[(1.0, 1.0)] * (MAX_GOALS + 1)),
     ],
 }
 assert set(ABSURD) == set(TOPICS)

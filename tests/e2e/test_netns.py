@@ -25,7 +25,7 @@ from cvxnav.supervisor import stop_processes
 from netns import Network, Seen, network
 from schemas.files import RunFile
 from schemas.scenario import bundled_scenario
-from sim.vehicle import VehicleLimits
+from services.drive.vehicle import VehicleLimits
 
 pytestmark = pytest.mark.slow
 PAPER = bundled_scenario()

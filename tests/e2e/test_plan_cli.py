@@ -13,8 +13,8 @@ import pytest
 from schemas.files import PlanFile
 from schemas.scenario import load_scenario
 from services.convert import ellipse_from_model
+from services.drive.controller import menger_curvature
 from services.geometry import polyline_length
-from sim.controller import menger_curvature
 
 PUBLIC = [
     "corner-trap",
@@ -63,7 +63,9 @@ def test_plan_is_safe_drivable_and_visits_goals_in_order(name, plans, scenarios_
         hits = np.flatnonzero(np.linalg.norm(path[cursor:] - goal, axis=1) <= scenario.goal_tolerance)
         assert len(hits), f"goal {goal} missed"
         cursor += hits[0]
-    assert set(plan.timings_ms.model_dump()) == {"cluster", "fit", "group", "optimize", "smooth", "total"}
+    timings = plan.timings_ms.model_dump()
+    assert set(timings) == {"load", "corridor", "cluster", "fit", "group", "optimize", "smooth", "total"}
+    assert timings["load"] > 0.0 and timings["total"] >= sum(v for k, v in timings.items() if k != "total")
     assert all(ellipse_from_model(e).level(path).min() > 1.0 for e in plan.ellipsoids)
 
 

@@ -48,7 +48,7 @@ def test_plot_of_a_run_at_a_chosen_size(tmp_path):
 
 
 @pytest.mark.parametrize("content, message", [
-    ('{"format": "cvxnav.other/1"}', "format: expected cvxnav.plan/1 or cvxnav.run/1"),
+    ('{"format": "cvxnav.other/1"}', "format: expected cvxnav.plan/2 (or /1) or cvxnav.run/2 (or /1)"),
     ("{", "invalid JSON"),
 ])
 def test_plot_rejects_bad_files_in_one_line(tmp_path, capsys, content, message):

@@ -21,9 +21,10 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
 from cvxnav.supervisor import free_ports, stop_processes
-from services.shell.zenoh_config import build_zenoh_config
 from ros2_bag import TOPIC_COUNTS, aces_bag_dir, read_mcap
-from services.ros2.wire import Attachment, EntityKind, gid_of, parse_token
+from services.ros2.wire import EntityKind, gid_of, parse_token
+from services.shell.ros2 import Attachment
+from services.shell.zenoh_config import build_zenoh_config
 
 RATE = 2000.0  # the 1318 s log in 0.66 s
 

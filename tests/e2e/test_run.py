@@ -194,3 +194,16 @@ def test_bad_input_exits_2_with_one_line(tmp_path, content, args):
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("cvxnav: error:")
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "run.json").exists()
+
+
+@pytest.mark.slow
+def test_a_run_on_nav2s_depot_map_reaches_its_goal_without_collision(shared_dir, tmp_path):
+    """The sim's sensor casts its rays through the map's cells; the pipeline only sees the hits."""
+    scenario_path = shared_dir / "map-scenarios" / "depot-1.json"
+    scenario = load_scenario(scenario_path)
+    proc = cvxnav_run(str(scenario_path), "--out", "run.json", cwd=tmp_path, timeout_s=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = RunFile.read(tmp_path / "run.json")
+    assert run.status == "reached" and run.goals_reached == 1
+    assert_car_like_and_clear(run, scenario)
+    assert 0.0 < run.latency_ms.p50 <= run.latency_ms.p99

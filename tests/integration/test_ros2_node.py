@@ -9,10 +9,10 @@ import pytest
 import zenoh
 
 from cvxnav.supervisor import free_ports
-from services.shell.zenoh_config import build_zenoh_config
-from services.ros2.node import RosNode
 from services.ros2.typesupport import type_hash
-from services.ros2.wire import LATCHED_QOS, Attachment, EntityKind, parse_token
+from services.ros2.wire import LATCHED_QOS, EntityKind, parse_token
+from services.shell.ros2 import Attachment, RosNode
+from services.shell.zenoh_config import build_zenoh_config
 
 WAIT_S = 5.0
 GRID = "nav_msgs/msg/OccupancyGrid"

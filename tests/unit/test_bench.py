@@ -198,7 +198,7 @@ def test_every_scaling_field_blocks_the_straight_line(count):
 
 
 def test_the_time_ratio_interval_holds_the_ratio_and_narrows_with_more_calls():
-    from cvxnav.bench.runner import ratio_interval
+    from cvxnav.bench.turns import ratio_interval
 
     rng = np.random.default_rng(3)
     ours, theirs = rng.gamma(4.0, 1.0, 400), rng.gamma(4.0, 1.25, 400)  # medians' ratio about 0.8

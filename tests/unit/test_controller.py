@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from sim.controller import GoalTracker, PurePursuit, menger_curvature
-from sim.vehicle import VehicleLimits, VehicleState, rear_axle, step
+from services.drive.controller import GoalTracker, PurePursuit, menger_curvature
+from services.drive.vehicle import VehicleLimits, VehicleState, rear_axle, step
 
 LIMITS = VehicleLimits(wheelbase_m=0.6, max_speed_mps=1.0, max_steering_rad=0.6, max_steering_rate_radps=0.5)
 DT_S = 0.05

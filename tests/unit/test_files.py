@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,8 @@ def _plan() -> PlanFile:
         path=[(0.0, 0.0), (0.03, 0.04), (0.1, 0.1)],
         raw_path=[(0.0, 0.0), (0.1, 0.1)],
         ellipsoids=[ellipse_to_model(ellipse)],
-        timings_ms=PlanTimings(cluster=0.5, fit=1.25, group=0.1, optimize=12.0, smooth=3.0, total=16.85),
+        timings_ms=PlanTimings(load=4.0, corridor=0.0, cluster=0.5, fit=1.25, group=0.1, optimize=12.0, smooth=3.0,
+                               total=20.85),
     )
 
 
@@ -45,8 +47,20 @@ def test_write_then_read_is_equal(tmp_path: Path, make) -> None:
     loaded = type(original).read(path)
     assert loaded == original
     data = json.loads(path.read_text())
-    assert data["format"] == {"PlanFile": "cvxnav.plan/1", "RunFile": "cvxnav.run/2"}[type(original).__name__]
+    assert data["format"] == {"PlanFile": "cvxnav.plan/2", "RunFile": "cvxnav.run/2"}[type(original).__name__]
     assert path.read_text().startswith('{\n "format"')  # indent=1
+
+
+def test_a_plan_1_file_still_reads_and_a_plan_2_file_needs_its_load_time(tmp_path: Path) -> None:
+    data = json.loads(_plan().model_dump_json())
+    for key in ("load", "corridor"):
+        del data["timings_ms"][key]
+    del data["reason"]
+    (tmp_path / "v1.json").write_text(json.dumps({**data, "format": "cvxnav.plan/1"}))
+    assert PlanFile.read(tmp_path / "v1.json").timings_ms.load == 0.0
+    (tmp_path / "v2.json").write_text(json.dumps(data))
+    with pytest.raises(OutputFileError, match=r"^v2.json: timings_ms.load: missing \(required in cvxnav.plan/2\)$"):
+        PlanFile.read(tmp_path / "v2.json")
 
 
 def test_ellipse_model_round_trips_the_geometry() -> None:
@@ -86,6 +100,33 @@ def test_run_rejects_infinite_clearance(tmp_path: Path) -> None:
     assert _bad_file(tmp_path, RunFile, edit) == "bad.json: min_clearance: Input should be a finite number"
 
 
+def test_a_run_2_file_says_null_for_no_obstacle_or_interrupted_and_a_run_1_file_still_reads(tmp_path: Path) -> None:
+    empty = _run().model_copy(update={"min_clearance": None})
+    empty.write(tmp_path / "empty.json")
+    assert json.loads((tmp_path / "empty.json").read_text())["min_clearance"] is None
+    assert RunFile.read(tmp_path / "empty.json") == empty
+    interrupted = _run().model_copy(update=dict(status="interrupted"))
+    interrupted.write(tmp_path / "interrupted.json")
+    assert RunFile.read(tmp_path / "interrupted.json") == interrupted
+    data = json.loads(_run().model_dump_json())
+    (tmp_path / "v1.json").write_text(json.dumps({**data, "format": "cvxnav.run/1"}))
+    old = RunFile.read(tmp_path / "v1.json")
+    assert (old.min_clearance, old.status) == (0.71, "reached")
+    assert (_bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", min_clearance=None))
+            == "bad.json: min_clearance: null is new in cvxnav.run/2")
+    assert (_bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", status="interrupted"))
+            == "bad.json: status: interrupted is new in cvxnav.run/2")
+
+
+def test_a_fifo_or_a_device_is_refused_unread(tmp_path: Path) -> None:
+    fifo = tmp_path / "run.json"
+    os.mkfifo(fifo)  # reading it would block until a writer came
+    with pytest.raises(OutputFileError, match=r"not a regular file"):
+        RunFile.read(fifo)
+    with pytest.raises(OutputFileError, match=r"^/dev/zero: not a regular file"):
+        RunFile.read("/dev/zero")
+
+
 def test_unknown_fields_are_rejected(tmp_path: Path) -> None:
     assert (
         _bad_file(tmp_path, PlanFile, lambda d: d["timings_ms"].update(io=1.0))
@@ -103,18 +144,6 @@ def test_wrong_format_status_and_shapes_are_named(tmp_path: Path) -> None:
     assert _bad_file(tmp_path, RunFile, lambda d: d["latency_ms"].update(p99=-1)).startswith(
         "bad.json: latency_ms.p99:"
     )
-
-
-def test_a_run_file_of_the_first_format_is_still_read_but_cannot_say_interrupted(tmp_path: Path) -> None:
-    path = tmp_path / "old.json"
-    data = json.loads(_run().model_dump_json())
-    path.write_text(json.dumps({**data, "format": "cvxnav.run/1"}))
-    assert RunFile.read(path).status == "reached"
-    assert _bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", status="interrupted")) == (
-        "bad.json: status: interrupted is a cvxnav.run/2 status")
-    interrupted = _run().model_copy(update=dict(status="interrupted"))
-    interrupted.write(path)
-    assert RunFile.read(path) == interrupted
 
 
 def test_ellipse_must_be_positive_definite(tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ from schemas.messages import (
     DecodeError,
     EllipsoidMsg,
     Ellipsoids,
+    Goals,
     Header,
     Pose2D,
     RawPath,
@@ -30,13 +31,16 @@ from schemas.messages import (
 )
 from schemas.wiring import (
     MONITOR,
+    PROCESSES,
+    ROS2,
+    SIM,
     STAGES,
     TOPICS,
     alive_key,
     default_prefix,
     key,
     model_for,
-    publisher_of,
+    publishers_of,
     stage_of_alive_key,
     stage_of_status_key,
     status_key,
@@ -65,6 +69,7 @@ EXAMPLES: dict[type[BaseModel], BaseModel] = {
         header=HEADER, pose=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0), speed_mps=0.5,
         steering_rad=-0.1, goal_index=1, goals_reached=1, done=False,
     ),
+    Goals: Goals(header=HEADER, goals=[(10.0, 10.0), (15.0, 15.0)]),
     StageStatus: StageStatus(
         header=HEADER, stage="planner", state="error", reason="solver failed",
         input_key="cvxnav/robot1/ellipsoids", processing_ms=12.5,
@@ -154,15 +159,19 @@ def test_negative_stamp_and_empty_cluster_rejected():
         ClusterMsg(cluster_id=0, points=[])
 
 
-def test_wiring_every_topic_has_its_publisher_and_a_subscriber():
+def test_wiring_every_topic_has_one_publisher_per_run_and_a_subscriber():
     for topic in TOPICS.values():
-        assert topic.name in STAGES[publisher_of(topic.name)].publishes
+        # A sim run's processes, or a ROS 2 robot's (the bridge in the sim's place): one publisher each.
+        for source in (SIM, ROS2):
+            run = {SIM.name, ROS2.name} - {source.name}
+            assert len([p for p in publishers_of(topic.name) if p not in run]) <= 1
+        assert publishers_of(topic.name)
         assert any(topic.name in spec.subscribes for spec in (*STAGES.values(), MONITOR))
     assert set(MONITOR.subscribes) == set(TOPICS)
-    for spec in STAGES.values():
-        for name in spec.publishes:
-            assert publisher_of(name) == spec.name
-        for name in spec.subscribes:
+    assert publishers_of("goals") == (ROS2.name,)
+    assert set(ROS2.subscribes) == set(SIM.subscribes) and ROS2.watches == SIM.watches
+    for spec in PROCESSES.values():
+        for name in (*spec.publishes, *spec.subscribes):
             assert name in TOPICS
 
 

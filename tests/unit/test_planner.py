@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.geometry import Ellipse, EllipseStack, polyline_length
-from services.planner.core import intersected, plan_path
+from services.planner.core import goals_ahead, intersected, plan_path, stay_at_start
 from services.planner.refine import RefineSettings, resample_legs
 from services.planner.route import tangent_route
 from services.planner.route.arcs import Arcs, cuts
@@ -360,3 +360,22 @@ def test_bounds_may_be_plain_sequences():
                   ellipses=[Ellipse.circle(center=[2.0, 3.0], radius=1.0)], max_curvature=1.0)
     as_lists = plan_path(**common, bounds_min=[-20, -20], bounds_max=(20.0, 20.0))
     assert as_lists.status == "ok" and np.array_equal(as_lists.points, plan_path(**common, **BOX).points)
+
+
+def test_goals_reached_at_the_start_or_with_the_goal_before_get_no_leg():
+    start = np.array([0.0, 0.0])
+    goals = np.array([[0.1, 0.0], [5.0, 5.0], [5.0, 5.0], [5.0, 5.0 + 1e-9], [8.0, 1.0], [8.0, 1.0]])
+    ahead = goals_ahead(start, goals, tolerance_m=0.3)
+    np.testing.assert_array_equal(ahead, [[5.0, 5.0], [8.0, 1.0]])
+    assert len(goals_ahead(start, np.array([[0.0, 0.0], [0.2, 0.1]]), tolerance_m=0.3)) == 0
+    # A goal near, but not at, the one before it keeps its (short) leg: only the car's position counts it.
+    np.testing.assert_array_equal(goals_ahead(start, np.array([[5.0, 5.0], [5.1, 5.0]]), tolerance_m=0.3),
+                                  [[5.0, 5.0], [5.1, 5.0]])
+
+
+def test_a_robot_whose_goals_are_all_at_its_start_stays_there():
+    plan, smoothed = stay_at_start(np.array([1.0, 2.0]), [Ellipse.from_axes(center=(4.0, 2.0), semi_axes=(1.0, 1.0))])
+    assert plan.status == "ok" and plan.points.tolist() == [[1.0, 2.0]] == smoothed.points.tolist()
+    assert smoothed.verification.ok and smoothed.verification.min_level == pytest.approx(3.0)
+    _, inside = stay_at_start(np.array([4.5, 2.0]), [Ellipse.from_axes(center=(4.0, 2.0), semi_axes=(1.0, 1.0))])
+    assert not inside.verification.ok and "inside" in inside.verification.reason

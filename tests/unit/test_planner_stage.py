@@ -9,15 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.messages import Ellipsoids, Header, Pose2D, RawPath, RobotState
+from schemas.messages import Ellipsoids, Goals, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
+from services.contract import StageInputError
 from services.convert import ellipse_to_msg, ellipses_from_msgs
+from services.drive.guard import PathGuard
 from services.geometry import Ellipse, EllipseStack, keep_out_scales
 from services.planner.core import plan_until_verified
 from services.planner.stage import PlannerStage, boxed_in, crosses_closed_gap, trim_to_robot
 from services.smoother.core import smooth
 from services.smoother.stage import SmootherStage
-from sim.guard import PathGuard
 
 SCENARIO = bundled_scenario()
 
@@ -175,3 +176,32 @@ def test_the_robot_is_placed_on_the_stretch_of_the_plan_it_faces():
     assert trimmed[0][1] == 0.2 and off_m == pytest.approx(0.05)
     _, off_m = trim_to_robot(out, position=np.array([2.05, 0.0]), heading_rad=np.pi)
     assert off_m == np.inf  # nothing of it runs the robot's way: off the plan, replan
+
+
+def test_new_goals_replace_the_scenarios_in_the_planner_and_the_smoother():
+    """A robot's /goal_pose reaches the pipeline as a Goals message: the planner drops its plan and plans to
+    the new goal, and the smoother verifies the curve against the new goal, not the scenario's."""
+    planner, smoother = PlannerStage.from_scenario(SCENARIO), SmootherStage.from_scenario(SCENARIO)
+    planner.process(topic="state", message=state(0), now_s=0.0)
+    (_, first), = planner.process(topic="ellipsoids", message=ellipsoids(0), now_s=0.0)
+    assert np.allclose(first.points[-1], SCENARIO.goals[-1])
+
+    goals = Goals(header=Header(stamp_s=0.2, seq=0), goals=[(4.0, 1.0)])
+    assert planner.process(topic="goals", message=goals, now_s=0.0) == []
+    assert smoother.process(topic="goals", message=goals, now_s=0.0) == []
+    planner.process(topic="state", message=state(1), now_s=0.0)
+    (_, raw), = planner.process(topic="ellipsoids", message=ellipsoids(1), now_s=0.0)
+    assert raw.status == "ok" and raw.plan_id == first.plan_id + 1 and np.allclose(raw.points[-1], (4.0, 1.0))
+    (_, curve), = smoother.process(topic="raw_path", message=raw, now_s=0.0)
+    assert curve.status == "ok" and np.allclose(curve.points[-1], (4.0, 1.0))
+    # A curve to the scenario's goals no longer verifies: it misses the robot's goal.
+    with pytest.raises(StageInputError, match="misses goal 0"):
+        smoother.process(topic="raw_path", message=first, now_s=0.0)
+
+
+def test_goals_outside_the_map_are_refused_and_the_old_ones_stay():
+    planner = PlannerStage.from_scenario(SCENARIO)
+    far = Goals(header=Header(stamp_s=0.0, seq=0), goals=[(4.0, 1.0), (1e6, 0.0)])
+    with pytest.raises(StageInputError, match=r"goals: goal 1: pose \(1e\+06, 0\) is outside the map bounds"):
+        planner.process(topic="goals", message=far, now_s=0.0)
+    assert np.array_equal(planner.config.goals, SCENARIO.goals_array)

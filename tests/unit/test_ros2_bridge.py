@@ -15,12 +15,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ros2_bag import Recorded, aces_bag_dir, independent_decoder, read_mcap
+from ros2_messages import header, laser_scan, odometry, pose, ros, stamp
 from schemas.messages import EllipsoidMsg, Ellipsoids, Header, SmoothPath
 from schemas.scenario import load_scenario
+from services.drive.vehicle import VehicleState, step
 from services.ros2 import typesupport
 from services.ros2.bridge import BridgeConfig, Ros2Bridge, body_twist
 from services.ros2.interface import BRIDGE_TOPICS
-from sim.vehicle import VehicleState, step
 
 SCENARIO = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
 
@@ -44,43 +45,6 @@ def feed(bridge: Ros2Bridge, recorded: Recorded):
     topic = recorded.topic.strip("/")
     return bridge.receive(topic=topic, key_expr=bridge.keys[topic], payload=recorded.data,
                           received_s=recorded.log_time_ns * 1e-9)
-
-
-def ros(msgtype: str, **fields):
-    return typesupport.message_class(msgtype)(**fields)
-
-
-def stamp(t_s: float):
-    sec = math.floor(t_s)
-    return ros("builtin_interfaces/msg/Time", sec=sec, nanosec=round((t_s - sec) * 1e9))
-
-
-def header(t_s: float, frame: str):
-    return ros("std_msgs/msg/Header", stamp=stamp(t_s), frame_id=frame)
-
-
-def pose(x: float, y: float, yaw: float):
-    return ros("geometry_msgs/msg/Pose", position=ros("geometry_msgs/msg/Point", x=x, y=y, z=0.0),
-               orientation=ros("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
-
-
-def odometry(*, x: float, y: float, yaw: float, t_s: float, frame: str = "odom", speed: float = 0.0) -> bytes:
-    vector = lambda **v: ros("geometry_msgs/msg/Vector3", **{"x": 0.0, "y": 0.0, "z": 0.0, **v})  # noqa: E731
-    message = ros("nav_msgs/msg/Odometry", header=header(t_s, frame), child_frame_id="base_link",
-                  pose=ros("geometry_msgs/msg/PoseWithCovariance", pose=pose(x, y, yaw), covariance=np.zeros(36)),
-                  twist=ros("geometry_msgs/msg/TwistWithCovariance",
-                            twist=ros("geometry_msgs/msg/Twist", linear=vector(x=speed), angular=vector()),
-                            covariance=np.zeros(36)))
-    return typesupport.encode(message, "nav_msgs/msg/Odometry")
-
-
-def laser_scan(ranges, *, t_s: float, angle_min: float, angle_increment: float, range_max: float = 30.0) -> bytes:
-    ranges = np.asarray(ranges, dtype=np.float32)
-    message = ros("sensor_msgs/msg/LaserScan", header=header(t_s, "laser"), angle_min=angle_min,
-                  angle_max=angle_min + angle_increment * (len(ranges) - 1), angle_increment=angle_increment,
-                  time_increment=0.0, scan_time=0.0, range_min=0.05, range_max=range_max, ranges=ranges,
-                  intensities=np.zeros(0, dtype=np.float32))
-    return typesupport.encode(message, "sensor_msgs/msg/LaserScan")
 
 
 def put(bridge: Ros2Bridge, topic: str, payload: bytes, *, t_s: float = 0.0):
@@ -118,14 +82,18 @@ def test_every_real_hit_lies_where_the_laser_says_and_no_return_rays_are_dropped
             else:
                 dropped += 1
                 dropped_at_50 += r == 50.0
-        (_, state), (_, made) = output.pipeline
-        assert made.header.frame_id == "map" and made.header.seq == scans == state.header.seq
+        # The robot's route passes the scenario's goal: from then on the scans go on alone, with no state to
+        # plan from.
+        *states, (_, made) = output.pipeline
+        assert [name for name, _ in states] == ([] if bridge.goals.done else ["state"])
+        assert made.header.frame_id == "map" and made.header.seq == scans
+        assert all(state.header.seq == scans for _, state in states)
         assert made.header.stamp_s == pytest.approx(scan.header.stamp.sec + 1e-9 * scan.header.stamp.nanosec)
         assert (made.pose.x_m, made.pose.y_m, made.pose.theta_rad) == pytest.approx((p.x, p.y, yaw), abs=1e-12)
         np.testing.assert_allclose(np.asarray(made.points).reshape(-1, 2), np.asarray(expected).reshape(-1, 2),
                                    rtol=0, atol=1e-9)
         scans += 1
-    assert scans == 440
+    assert scans == 440 and bridge.goals.done
     # The log writes "no return" as 50.0 m (not inf): beyond the sensor's 20 m, every one is dropped.
     assert dropped_at_50 == 620 and dropped > dropped_at_50
 
@@ -185,6 +153,7 @@ def test_each_bad_input_is_refused_with_a_reason_the_robot_brakes_and_the_bridge
     for topic, key, payload, reason in bad:
         bridge.path = np.array([[0.0, 0.0], [1.0, 0.0]])  # a path being followed: each rejection drops it
         output = bridge.receive(topic=topic, key_expr=key, payload=payload, received_s=1.0)
+        assert output.refused == topic
         assert output.error is not None and reason in output.error and "\n" not in output.error
         assert output.error.startswith(f"{topic}: ")
         assert bridge.path is None and output.pipeline == []
@@ -196,12 +165,37 @@ def test_each_bad_input_is_refused_with_a_reason_the_robot_brakes_and_the_bridge
     assert scan_output.error is None and scan_output.pipeline[1][0] == "scan"
 
 
-def test_a_scan_far_from_the_newest_odometry_in_time_is_refused(bridge) -> None:
-    assert put(bridge, "scan", laser_scan([1.0], t_s=0.0, angle_min=0.0, angle_increment=0.0)).error == \
-        "scan: no odometry yet to place the scan"
-    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=10.0))
-    error = put(bridge, "scan", laser_scan([1.0], t_s=11.0, angle_min=0.0, angle_increment=0.0)).error
-    assert "1.000 s apart > max_pose_age_s 0.5" in error
+def test_a_scan_is_placed_at_the_pose_of_its_stamp_and_waits_for_the_odometry_if_it_comes_first(bridge) -> None:
+    """Over the network a scan may overtake the odometry stamped with it (the ACES bag's pairs do): it
+    waits up to max_pose_age_s for the odometry after its stamp, as tf's message filter waits for a
+    transform, and is placed at the pose interpolated between the odometry on either side."""
+    scan = laser_scan([1.0], t_s=5.0, angle_min=0.0, angle_increment=0.0)
+    assert put(bridge, "scan", scan, t_s=100.0).error is None  # no odometry yet: it waits
+    (twist,) = decoded(tick := bridge.tick(received_s=100.6), "cmd_vel")
+    assert tick.error == "scan: no odometry yet to place the scan" and tick.refused == "scan"
+    assert (twist.linear.x, twist.angular.z) == (0.0, 0.0)
+
+    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=4.0), t_s=101.0)
+    assert put(bridge, "scan", scan, t_s=101.1).pipeline == []  # 1 s from the newest odometry: it waits
+    placed = put(bridge, "odom", odometry(x=2.0, y=1.0, yaw=0.5, t_s=5.0), t_s=101.15)
+    (_, robot), (_, state), (_, made) = placed.pipeline
+    assert placed.error is None and (made.pose.x_m, made.pose.y_m, made.pose.theta_rad) == (2.0, 1.0, 0.5)
+    assert made.points == [pytest.approx((2.0 + math.cos(0.5), 1.0 + math.sin(0.5)))]
+    assert robot.header.stamp_s == state.header.stamp_s == 5.0
+
+    # Between two odometry messages: the pose interpolated to its stamp (a robot turning on the spot).
+    put(bridge, "scan", laser_scan([1.0], t_s=5.25, angle_min=0.0, angle_increment=0.0), t_s=101.2)
+    (_, between), = [item for item in put(bridge, "odom", odometry(x=3.0, y=1.0, yaw=-0.5, t_s=5.5),
+                                           t_s=101.25).pipeline if item[0] == "scan"]
+    assert (between.pose.x_m, between.pose.y_m, between.pose.theta_rad) == pytest.approx((2.5, 1.0, 0.0))
+
+    # Odometry on both sides, neither within 0.5 s: refused, with the robot braking.
+    put(bridge, "scan", laser_scan([1.0], t_s=6.2, angle_min=0.0, angle_increment=0.0), t_s=101.3)
+    refused = put(bridge, "odom", odometry(x=2.0, y=1.0, yaw=0.5, t_s=7.0), t_s=101.4)
+    assert refused.error == ("scan: stamped 6.200 s but the nearest odometry is from 5.500 s (0.700 s apart > "
+                             "max_pose_age_s 0.5)") and refused.refused == "scan"
+    assert [name for name, _ in refused.pipeline] == ["state"]  # the odometry itself was good
+    assert [cmd.linear.x for cmd in decoded(refused, "cmd_vel")] == [0.0, 0.0]
 
 
 # --------------------------------------------------------------------------- paths and commands
@@ -212,20 +206,36 @@ def straight_path(*, x: float, y: float, yaw: float, length_m: float = 6.0) -> l
     return [(x + d * math.cos(yaw), y + d * math.sin(yaw)) for d in s]
 
 
+def heading_to_its_end(bridge: Ros2Bridge, points) -> Ros2Bridge:
+    """The bridge with its goal at the end of ``points``: a path is followed only if it ends at the goal."""
+    return Ros2Bridge(config=dataclasses.replace(bridge.config, goals=(tuple(points[-1]),)))
+
+
 def answer(bridge: Ros2Bridge, points, *, scan_seq: int, plan_id: int = 1) -> SmoothPath:
     return SmoothPath(header=Header(stamp_s=0.0, seq=scan_seq), scan_seq=scan_seq, status="ok", goal_index=0,
                       points=points, max_curvature=0.0, min_level=2.0, plan_id=plan_id)
 
 
-def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float):
+def known(bridge: Ros2Bridge, *, scan_seq: int, t_s: float, ellipses=()):
+    """The ellipsoid stage's answer to a scan, as the bridge receives it."""
+    message = Ellipsoids(header=Header(stamp_s=t_s, seq=scan_seq), scan_seq=scan_seq, inflation_m=0.35,
+                         ellipsoids=list(ellipses))
+    return bridge.take_ellipsoids(message, received_s=t_s)
+
+
+def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float, ellipses=()):
+    """Odometry and a scan at ``t_s``, and the ellipsoid stage's answer to the scan."""
     put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=t_s), t_s=t_s)
-    return put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=-0.1, angle_increment=0.1), t_s=t_s)
+    output = put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=-0.1, angle_increment=0.1), t_s=t_s)
+    known(bridge, scan_seq=output.pipeline[-1][1].header.seq, t_s=t_s, ellipses=ellipses)
+    return output
 
 
 def test_a_verified_path_is_published_on_plan_and_followed_within_the_speed_bound(bridge, scenario) -> None:
     x, y, yaw = 0.897, -0.181, -0.454
-    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=100.25)
     points = straight_path(x=x, y=y, yaw=yaw)
+    bridge = heading_to_its_end(bridge, points)
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=100.25)
     output = bridge.take_path(answer(bridge, points, scan_seq=0), received_s=100.4)
     assert output.error is None and bridge.latencies_ms == [pytest.approx(150.0)]
     (plan,) = decoded(output, "plan")
@@ -249,6 +259,7 @@ def test_a_verified_path_is_published_on_plan_and_followed_within_the_speed_boun
 
 def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     x, y, yaw = 0.9, -0.2, 0.0
+    bridge = heading_to_its_end(bridge, straight_path(x=x, y=y, yaw=yaw))
     scan_at(bridge, x=x, y=y, yaw=yaw, t_s=10.0)
 
     def command(t_s: float) -> float:
@@ -262,7 +273,7 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     assert command(10.0 + bridge.config.stale_after_s + 0.1) == 0.0
     # A stage lost: zero, and answers to scans sent before it came back do not count.
     scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.0)
-    bridge.stage_lost("planner")
+    bridge.stage_lost("planner", now_s=20.0)
     bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=1), received_s=20.1)
     assert command(20.1) == 0.0
     bridge.stage_back("planner")
@@ -273,25 +284,65 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     assert command(20.4) > 0.0
     # Newer ellipses across the path: the guard drops it.
     ellipse = EllipsoidMsg(A=((2.0, 0.0), (0.0, 2.0)), b=(-2.0 * (x + 2.0), -2.0 * y), group=0, cluster_id=7)
-    assert bridge.take_ellipsoids(Ellipsoids(header=Header(stamp_s=20.3, seq=0), scan_seq=2, inflation_m=0.65,
-                                             ellipsoids=[ellipse])).error is None
+    assert known(bridge, scan_seq=2, t_s=20.45, ellipses=[ellipse]).error is None
     assert bridge.path is None and "newer obstacles" in bridge.braking_reason and command(20.5) == 0.0
     # A path through the known ellipse is not followed; one starting against the heading neither.
-    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.6)
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.6, ellipses=[ellipse])
     refused = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=3), received_s=20.7)
     assert "enters a known obstacle's ellipse (cluster 7" in refused.error and decoded(refused, "plan") == []
-    backwards = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=math.pi), scan_seq=3), received_s=20.7)
+    round_the_back = [(x, y), (x - 0.05, y), (x, y + 1.5), (x + 4.0, y + 1.5), bridge.goals.goals[-1]]
+    backwards = bridge.take_path(answer(bridge, round_the_back, scan_seq=3), received_s=20.7)
     assert "against the robot's heading" in backwards.error
+    # A path to somewhere else than the goal (planned for goals since replaced) is not followed.
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.8)
+    elsewhere = bridge.take_path(answer(bridge, straight_path(x=x, y=y + 2.0, yaw=yaw), scan_seq=4), received_s=20.9)
+    assert elsewhere.error is None and decoded(elsewhere, "plan") == [] and bridge.path is None
     # An answer to a scan the bridge never sent is refused.
     assert "did not send" in bridge.take_path(answer(bridge, [(0.0, 0.0), (1.0, 0.0)], scan_seq=99),
                                               received_s=21.0).error
 
 
-def test_the_odometry_falling_silent_brakes_on_the_timer(bridge) -> None:
-    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0), t_s=50.0)
-    assert bridge.tick(received_s=50.5).ros == []
-    (twist,) = decoded(bridge.tick(received_s=51.5), "cmd_vel")
-    assert (twist.linear.x, twist.angular.z) == (0.0, 0.0) and bridge.braking_reason == "no odometry"
+def test_a_path_waits_until_the_guard_knows_the_obstacles_of_every_scan_the_robot_has_had_a_while(bridge) -> None:
+    """The guard must be current: it knows the ellipses of the path's own scan, and of the newest scan
+    received guard_window_s before. Without that wait this path, checked against scan 0's obstacles only,
+    would have been followed into the obstacle scan 1 showed 0.6 s earlier."""
+    x, y, yaw = 0.9, -0.2, 0.0
+    points = straight_path(x=x, y=y, yaw=yaw)
+    bridge = heading_to_its_end(bridge, points)
+    put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=0.0), t_s=0.0)
+    put(bridge, "scan", laser_scan([3.0], t_s=0.0, angle_min=0.0, angle_increment=0.0), t_s=0.0)
+    held = bridge.take_path(answer(bridge, points, scan_seq=0), received_s=0.2)
+    assert decoded(held, "plan") == [] and held.error is None  # its scan's ellipses are still on their way
+    (plan,) = decoded(known(bridge, scan_seq=0, t_s=0.3), "plan")
+    assert len(plan.poses) == len(points)
+
+    put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=1.0), t_s=1.0)
+    put(bridge, "scan", laser_scan([3.0], t_s=1.0, angle_min=0.0, angle_increment=0.0), t_s=1.0)
+    held = bridge.take_path(answer(bridge, points, scan_seq=0, plan_id=2), received_s=1.6)
+    assert decoded(held, "plan") == [] and bridge.held is not None
+    ellipse = EllipsoidMsg(A=((2.0, 0.0), (0.0, 2.0)), b=(-2.0 * (x + 3.0), -2.0 * y), group=0, cluster_id=3)
+    refused = known(bridge, scan_seq=1, t_s=1.7, ellipses=[ellipse])
+    assert decoded(refused, "plan") == [] and "plan 2 for scan 0 not followed" in refused.error
+    assert "(cluster 3, of scan 1)" in refused.error and bridge.held is None and bridge.path is None
+
+
+def test_the_timer_repeats_the_command_between_sparse_odometry_and_brakes_when_it_falls_silent(bridge) -> None:
+    """A base times its command out (often after 0.5 s): with odometry slower than that the timer repeats
+    the last command every command_period_s; with none for odom_timeout_s it commands zero, every tick."""
+    x, y, yaw = 0.9, -0.2, 0.0
+    bridge = heading_to_its_end(bridge, straight_path(x=x, y=y, yaw=yaw))
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=50.0)
+    bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=0), received_s=50.1)
+    (moving,) = decoded(put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=50.2, speed=0.3), t_s=50.2), "cmd_vel")
+    assert moving.linear.x > 0.0
+    assert bridge.tick(received_s=50.6).ros == []  # 0.4 s since the command: nothing yet
+    (again,) = decoded(bridge.tick(received_s=50.7), "cmd_vel")
+    assert (again.linear.x, again.angular.z) == (moving.linear.x, moving.angular.z)
+    assert bridge.tick(received_s=51.1).ros == [] and decoded(bridge.tick(received_s=51.2), "cmd_vel")
+    (stop,) = decoded(bridge.tick(received_s=51.3), "cmd_vel")  # 1.1 s without odometry
+    assert (stop.linear.x, stop.angular.z) == (0.0, 0.0) and bridge.braking_reason == "no odometry"
+    (still,) = decoded(bridge.tick(received_s=51.4), "cmd_vel")
+    assert still.linear.x == 0.0 and bridge.path is None
 
 
 def test_body_twist_turns_the_footprint_centre_on_the_bicycles_circle(bridge, scenario) -> None:
@@ -318,8 +369,12 @@ def test_a_goal_pose_replaces_the_scenarios_goals(bridge) -> None:
     goal = ros("geometry_msgs/msg/PoseStamped", header=header(1.0, "odom"), pose=pose(5.0, -3.0, 0.0))
     output = put(bridge, "goal_pose", typesupport.encode(goal, "geometry_msgs/msg/PoseStamped"))
     assert output.error is None and output.goals == ((5.0, -3.0),)
-    (state_name, state), = put(bridge, "odom", odometry(x=4.8, y=-3.0, yaw=0.0, t_s=1.1)).pipeline
-    assert state.goals_reached == 1 and state.done
+    (state_name, state), = put(bridge, "odom", odometry(x=2.0, y=-3.0, yaw=0.0, t_s=1.1)).pipeline
+    assert state.goal_index == 0 and state.goals_reached == 0 and not state.done
+    # Reached: the robot stands, and the planner gets no state until there is a goal again.
+    reached = put(bridge, "odom", odometry(x=4.8, y=-3.0, yaw=0.0, t_s=1.2))
+    (twist,) = decoded(reached, "cmd_vel")
+    assert bridge.goals.done and reached.pipeline == [] and (twist.linear.x, twist.angular.z) == (0.0, 0.0)
 
 
 def test_an_occupancy_grid_is_kept_as_an_array_with_its_resolution_and_origin(bridge) -> None:

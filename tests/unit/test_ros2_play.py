@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from services.ros2.play import recorded_qos
+from cvxnav.ros2_play import recorded_qos
 from services.ros2.wire import INFINITE, Durability, QosProfile, Reliability, RmwDuration
 
 

@@ -21,7 +21,6 @@ from services.ros2.wire import (
     LATCHED_QOS,
     RMW_ZENOH_DEFAULT_QOS,
     SENSOR_DATA_QOS,
-    Attachment,
     Durability,
     Endpoint,
     EntityKind,
@@ -37,6 +36,7 @@ from services.ros2.wire import (
     ros_type_name,
     topic_key,
 )
+from services.shell.ros2 import Attachment
 
 # design.md: the demo_nodes_cpp chatter topic's type, std_msgs/msg/String.
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"

@@ -156,12 +156,12 @@ BAD_CASES: list[tuple[str, Callable[[], str], str]] = [
     (
         "negative width",
         lambda: _mutated(lambda d: d["robot"].update(width=-0.3)),
-        "bad.json: robot.width: Input should be greater than 0",
+        "bad.json: robot.width: Input should be greater than or equal to 0.01",
     ),
     (
         "steering at pi/2",
         lambda: _mutated(lambda d: d["robot"].update(max_steering_angle=math.pi / 2)),
-        "bad.json: robot.max_steering_angle: Input should be less than",
+        "bad.json: robot.max_steering_angle: Input should be less than or equal to 1.5",
     ),
     (
         "polygon with 2 vertices",
@@ -216,8 +216,8 @@ BAD_CASES: list[tuple[str, Callable[[], str], str]] = [
     ),
     (
         "wrong format string",
-        lambda: _mutated(lambda d: d.update(format="cvxnav.scenario/2")),
-        "bad.json: format: Input should be 'cvxnav.scenario/1'",
+        lambda: _mutated(lambda d: d.update(format="cvxnav.scenario/3")),
+        "bad.json: format: Input should be 'cvxnav.scenario/1' or 'cvxnav.scenario/2'",
     ),
     ("missing field", lambda: _mutated(lambda d: d.pop("sensor")), "bad.json: sensor: Field required"),
     ("invalid JSON", _replace('"rays": 181,', '"rays": 181,,'), "bad.json: invalid JSON: Expecting property name"),
@@ -255,7 +255,7 @@ def test_several_problems_report_the_first_and_count_the_rest() -> None:
     data["sensor"]["rays"] = 1
     with pytest.raises(ScenarioError) as info:
         parse_scenario(json.dumps(data), source="two.json")
-    assert str(info.value) == "two.json: robot.width: Input should be greater than 0 (and 1 more)"
+    assert str(info.value) == "two.json: robot.width: Input should be greater than or equal to 0.01 (and 1 more)"
 
 
 def test_models_are_frozen() -> None:

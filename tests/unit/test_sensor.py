@@ -98,7 +98,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from sim.vehicle import VehicleState  # noqa: E402
+from services.drive.vehicle import VehicleState  # noqa: E402
 from sim.world import World  # noqa: E402
 
 SCENARIOS = Path("/work/shared/scenarios")
@@ -166,3 +166,39 @@ def test_ray_hits_agree_with_shapely_on_random_convex_polygons(cloud, theta: flo
             continue
         expected = shapely.distance(shapely.Point(0.0, 0.0), crossing)
         assert abs(r - expected) < 1e-9
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.4])
+def test_rays_through_an_occupancy_grid_stop_where_they_enter_its_first_blocked_cell(yaw):
+    """The cell-by-cell traversal against the same cells cast exactly as polygons (and the map's edge:
+    beyond it is blocked)."""
+    from schemas.occupancy import OCCUPIED, UNKNOWN, OccupancyGrid
+    from sim.sensor import cast_rays_grid
+
+    rng = np.random.default_rng(11)
+    grid = OccupancyGrid.from_mask(rng.random((40, 50)) < 0.06, resolution_m=0.05, origin=(-1.0, 2.0, yaw))
+    boxes = [shapely.Polygon(c) for c in grid.rectangles(states=(OCCUPIED, UNKNOWN))]
+    edge = shapely.Polygon(grid.extent_corners()).exterior
+    targets = RayTargets.of([*boxes, edge])
+    free = np.argwhere(~grid.blocked)
+    angles = np.linspace(-np.pi, np.pi, 181)
+    for j, i in free[rng.choice(len(free), 12, replace=False)]:
+        origin = grid.to_world([[(i + 0.3) * 0.05, (j + 0.6) * 0.05]])[0]
+        exact = cast_rays(origin=origin, angles_rad=angles, targets=targets)
+        traversed = cast_rays_grid(grid, origin=origin, angles_rad=angles, max_range_m=10.0)
+        np.testing.assert_allclose(traversed, exact, atol=1e-9)
+        short = cast_rays_grid(grid, origin=origin, angles_rad=angles, max_range_m=0.5)
+        np.testing.assert_allclose(short, np.where(exact <= 0.5, exact, np.inf), atol=1e-9)
+
+
+def test_rays_cast_in_blocks_measure_what_one_sweep_measures(monkeypatch) -> None:
+    import sim.sensor
+
+    targets = RayTargets.of([shapely.box(3.0, -0.5, 4.0, 0.5), shapely.box(-2.0, 1.0, -1.0, 3.0),
+                             Circle(center=(0.0, -3.0), radius_m=0.7)])
+    angles = np.linspace(-math.pi, math.pi, 4096, endpoint=False)
+    whole = cast_rays(origin=(0.2, 0.1), angles_rad=angles, targets=targets)
+    monkeypatch.setattr(sim.sensor, "BLOCK_PAIRS", 50)  # 50 // 8 edges: blocks of 6 rays
+    blocks = cast_rays(origin=(0.2, 0.1), angles_rad=angles, targets=targets)
+    assert np.isfinite(whole).sum() > 1000
+    np.testing.assert_array_equal(blocks, whole)

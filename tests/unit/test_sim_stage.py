@@ -157,3 +157,11 @@ def test_a_run_stopped_before_its_outcome_is_interrupted():
     drive(sim, ticks=30)
     sim.stop(now_s=0.0)
     assert sim.result().status == "interrupted" and sim.result().format == "cvxnav.run/2"
+
+
+def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():
+    scenario = bundled_scenario().model_copy(update={"goals": [(0.1, 0.0), (0.0, 0.2)]})
+    sim = SimStage.from_scenario(scenario)
+    assert sim.core.outcome == "reached" and sim.core.goals.reached_count == 2
+    result = sim.result()
+    assert result.status == "reached" and len(result.trajectory) == 1

@@ -15,10 +15,10 @@ from shapely.geometry import LineString, Point
 from schemas.messages import Ellipsoids, Header, SmoothPath
 from schemas.scenario import Scenario, bundled_scenario
 from services.convert import ellipse_to_msg
+from services.drive.guard import PathGuard
 from services.geometry import Ellipse
 from services.sensing.stage import SensingStage
 from sim.core import SimConfig, SimCore
-from sim.guard import PathGuard
 
 PAPER = bundled_scenario()
 

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.vehicle import VehicleLimits, VehicleState, footprint, rear_axle, step
+from services.drive.vehicle import VehicleLimits, VehicleState, footprint, rear_axle, step
 
 PAPER = VehicleLimits(wheelbase_m=0.6, max_speed_mps=1.0, max_steering_rad=0.2, max_steering_rate_radps=0.5)
 

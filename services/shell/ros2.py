@@ -1,4 +1,5 @@
-"""A ROS 2 node on a Zenoh session, declared as rmw_zenoh declares one (Jazzy and later).
+"""A ROS 2 node on a Zenoh session, declared as rmw_zenoh declares one (Jazzy and later), and the rmw
+attachment every sample carries.
 
 One Zenoh session is one ROS context: its node gets the first id of the context's counter and each
 publisher or subscription the next (``rmw_context_impl_s``), each holds its liveliness token
@@ -10,6 +11,14 @@ detects late publishers and queries their caches, so a latched /map reaches a br
 
 Subscriptions listen to every type and hash of their topic (`wire.topic_key_any_type`) so that a
 publisher of a different definition is reported rather than silently never heard.
+
+The bridge's node (`BridgePorts`) is the one the shell declares for a process that is also a ROS 2 node
+(``StageSpec.ros2``), with the bridge's interface (``services.ros2.interface``).
+
+The attachment of every sample (``attachment_helpers.cpp``): sequence number (int64), source timestamp
+(int64 ns since the epoch), GID (16 bytes), written with the Zenoh serialization format (zenoh-ext),
+so 8 + 8 + 1 (the GID's LEB128 length, 16) + 16 bytes, all little-endian. rmw_zenoh's subscriptions
+drop a sample that has none.
 """
 
 from __future__ import annotations
@@ -21,8 +30,9 @@ from dataclasses import dataclass
 import zenoh
 import zenoh.ext
 
+from services.ros2.interface import BRIDGE_NODE, BRIDGE_TOPICS
 from services.ros2.wire import (
-    Attachment,
+    GID_BYTES,
     EntityKind,
     Endpoint,
     History,
@@ -35,6 +45,35 @@ from services.ros2.wire import (
 
 # Period of the sample-miss heartbeats of a reliable transient-local publisher (rmw_publisher_data.cpp).
 _HEARTBEAT_S = 0.5
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """The metadata rmw_zenoh sends with every sample and its subscriptions require."""
+
+    sequence_number: int  # the publisher's, from 1
+    source_timestamp_ns: int  # when it was published, ns since the Unix epoch
+    source_gid: bytes  # the publisher's GID
+
+    def __post_init__(self) -> None:
+        if len(self.source_gid) != GID_BYTES:
+            raise ValueError(f"a GID has {GID_BYTES} bytes, got {len(self.source_gid)}")
+
+    def to_bytes(self) -> bytes:
+        """Serialised as rmw_zenoh's ``AttachmentData::serialize_to_zbytes`` (zenoh-ext format)."""
+        value = (zenoh.ext.Int64(self.sequence_number), zenoh.ext.Int64(self.source_timestamp_ns),
+                 bytes(self.source_gid))
+        return zenoh.ext.z_serialize(value).to_bytes()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Attachment:
+        """Parse an attachment; ValueError (one line) if it is not rmw_zenoh's."""
+        try:
+            sequence, stamp, gid = zenoh.ext.z_deserialize(tuple[zenoh.ext.Int64, zenoh.ext.Int64, bytes],
+                                                           zenoh.ZBytes(bytes(data)))
+        except zenoh.ext.ZDeserializeError as error:
+            raise ValueError(f"not an rmw_zenoh attachment ({len(data)} bytes): {error}") from None
+        return cls(sequence_number=int(sequence), source_timestamp_ns=int(stamp), source_gid=bytes(gid))
 
 
 @dataclass
@@ -134,3 +173,47 @@ class RosNode:
         self.publishers.clear()
         self.subscriptions.clear()
         self.token.undeclare()
+
+
+class BridgePorts:
+    """The ROS 2 bridge's node on the shell's session (``StageSpec.ros2``), its topics the bridge interface's.
+
+    Every sample of an input topic goes to ``deliver(port, sample)`` (the shell's queue, in arrival
+    order with the process's other inputs); ``put`` publishes a core's ``Raw`` bytes on an output topic
+    with the attachment. The node and its publishers and subscriptions hold their liveliness tokens
+    until ``close``.
+    """
+
+    def __init__(self, session: zenoh.Session, *, domain_id: int, namespace: str,
+                 deliver: Callable[[str, zenoh.Sample], None]) -> None:
+        self.node = RosNode(session, name=BRIDGE_NODE, namespace=namespace, domain_id=domain_id)
+        self._publishers: dict[str, RosPublisher] = {}
+        self._subscriptions: dict[str, RosSubscription] = {}
+        for port, topic in BRIDGE_TOPICS.items():
+            common = dict(topic=topic.name, msgtype=topic.msgtype, type_hash=topic.type_hash, qos=topic.qos)
+            if topic.direction == "out":
+                self._publishers[port] = self.node.publisher(**common)
+            else:
+                self._subscriptions[port] = self.node.subscription(
+                    handler=lambda sample, port=port: deliver(port, sample), **common)
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return tuple(self._subscriptions)
+
+    def publishes(self, port: str) -> bool:
+        return port in self._publishers
+
+    def key(self, port: str) -> str:
+        """The data key of ``port`` (for an input, the one its type and hash are expected on)."""
+        entity = self._publishers.get(port) or self._subscriptions[port]
+        return entity.endpoint.key_expr
+
+    def max_payload_bytes(self, port: str) -> int:
+        return BRIDGE_TOPICS[port].max_payload_bytes
+
+    def put(self, port: str, payload: bytes) -> None:
+        self._publishers[port].put(payload)
+
+    def close(self) -> None:
+        self.node.close()

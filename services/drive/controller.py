@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sim.vehicle import VehicleLimits, VehicleState, rear_axle
+from services.drive.vehicle import VehicleLimits, VehicleState, rear_axle
 
 FloatArray = NDArray[np.float64]
 

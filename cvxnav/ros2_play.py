@@ -29,7 +29,6 @@ from rosbags.rosbag2 import ReaderError
 from rosbags.typesys.store import Typestore
 
 from services.ros2 import typesupport
-from services.ros2.node import RosNode
 from services.ros2.wire import (
     INFINITE,
     RMW_ZENOH_DEFAULT_QOS,
@@ -42,6 +41,7 @@ from services.ros2.wire import (
     RosNameError,
     resolve_topic,
 )
+from services.shell.ros2 import RosNode
 
 logger = logging.getLogger(__name__)
 

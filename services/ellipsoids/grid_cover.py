@@ -1,0 +1,451 @@
+"""A cover of an occupancy grid's walls by few ellipses, fitted tile by tile where a plan needs them.
+
+What must be covered. A path from free space into the blocked region crosses a blocked cell that shares
+an edge or a corner with a free cell (`OccupancyGrid.border_cells`), so ellipses containing every such
+cell keep a robot that starts free out of every blocked cell; the interior of a wall or of unknown space
+needs nothing. Each piece of border cells gets the Löwner–John ellipse (eq. 1) of its bounding rectangle
+— along the piece's principal axes, or the grid's when that rectangle is smaller — which eq. 1 solves in
+closed form: by affine equivariance the MVEE of a rectangle of half-sides w ≥ h is the coaxial ellipse of
+semi-axes √2 w, √2 h (a square's is its circumscribed circle). (`mvee_fast` on the cells' corners gives
+a slightly smaller ellipse at about a millisecond a piece, which a map's thousands of pieces cannot
+afford.) After the fit every corner of the piece's hull is checked, in floats, to have level
+‖A z + b‖ ≤ 1 − `_PROOF_MARGIN`, the ellipse enlarged about its centre until it does; the rounding of that
+computation is below 1e-12 at map coordinates, so every corner is inside, and, the ellipse being convex,
+every cell.
+
+How pieces are chosen. The robot is planned as a point outside the ellipses grown by r = width/2 +
+safety: a piece is judged by how far its GROWN ellipse sticks out of the true grown blocked region
+B ⊕ disc(r), read off a distance transform of the blocked mask (excess = max over the grown ellipse of
+dist(·, B) − r, sampled at cell centres), not by how far the raw ellipse sticks out of its cells. That
+matters for thin pieces: a long wall's ellipse is long and thin, and the least-area growth
+(`Ellipse.grown`) of it has a minor semi-axis of about √2·r, which narrows corridors and closes doors.
+The growth here is chosen per piece: every ellipse (1 + 1/p) Q + (1 + p) r² I contains the Minkowski sum
+of the fit Q with disc(r) for any p > 0 (Kurzhanski & Vályi), a small p keeps the width near r at the
+price of long tips, and a long tip does no harm in the middle of a straight wall, where it lies in the
+wall's own grown strip; so p is picked, among a few from (minor semi-axis)/r to (major semi-axis)/r, for
+the least excess. A piece whose excess is above the tolerance is split in two across its principal axis
+(the recursive bisection of `services.ellipsoids.cover`), so long walls end up as a few long ellipses
+and corners, wall ends and door jambs as short ones: the count follows the outline, not the cells.
+Every piece of one level of the bisection is fitted, judged and split in one batch of array operations.
+
+Tiles. The grid (with the ring of blocked cells round it: beyond the map is unknown) is cut into square
+tiles, fitted when a plan first asks for them (`GridCover.pieces`) and kept. The tiles asked for at once
+are fitted as whole rectangles of tiles, their border cells pieces across the tiles' edges (a wall is
+not cut at every tile), neighbouring ones on one distance transform over them and their halo. A piece's grown ellipse must stay
+within its rectangle widened by `halo_m` (a growth that does not is not taken), so a path further than
+`halo_m` from every tile not yet fitted can touch no ellipse those tiles will get (`GridCover.reach_m`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from services.geometry import Ellipse, FloatArray
+from schemas.occupancy import OccupancyGrid
+
+IntArray = NDArray[np.intp]
+Tile = tuple[int, int]  # (tile column, tile row)
+
+_PROOF_MARGIN = 1e-9  # every corner's computed level stays this far below 1 (rounding is < 1e-12)
+_EIGHT = np.ones((3, 3), dtype=bool)
+_GOLDEN_RAD = math.pi * (3.0 - math.sqrt(5.0))  # sunflower samples of a disc
+
+
+@dataclass(frozen=True)
+class GridCoverSettings:
+    tolerance_m: float = 0.1  # largest excess of a grown ellipse over the grown blocked region
+    tile_m: float = 2.4  # side of a tile
+    halo_m: float = 1.0  # how far a grown ellipse may reach beyond its tile
+    growths: int = 4  # growth parameters p tried per piece
+    join_m: float = 0.4  # border cells closer than this start in one piece
+
+
+@dataclass(frozen=True, eq=False)
+class GridPiece:
+    """One ellipse of the cover: the fit of its cells and its growth (world frame, {z : ‖A z + b‖ ≤ 1},
+    as `Ellipse`s when asked for), and how it was judged."""
+
+    raw_Ab: FloatArray  # (2, 3): A, then b as a column
+    grown_Ab: FloatArray
+    p: float  # the Kurzhanski–Vályi parameter of the growth
+    excess_m: float  # of the grown ellipse over the grown blocked region (sampled at cell centres)
+    cells: IntArray  # (n, 2) column, row of the border cells it covers
+
+    @cached_property
+    def raw(self) -> Ellipse:
+        return Ellipse(A=self.raw_Ab[:, :2], b=self.raw_Ab[:, 2])
+
+    @cached_property
+    def grown(self) -> Ellipse:
+        return Ellipse(A=self.grown_Ab[:, :2], b=self.grown_Ab[:, 2])
+
+
+@dataclass(frozen=True)
+class DistanceWindow:
+    """A distance transform over a block of cells: D = metres from each cell centre to the nearest blocked
+    cell's centre, less half a cell, rows × columns from (row0, col0). D is at least the distance from the
+    centre to the nearest blocked square (that square is no further than its centre less half a cell),
+    and exact, or above the margin plus the tolerance, everywhere in the window."""
+
+    row0: int
+    col0: int
+    distance: NDArray[np.float32]
+
+
+@dataclass(eq=False)
+class GridCover:
+    """The cover of one grid's border cells for one margin, fitted tile by tile on demand."""
+
+    grid: OccupancyGrid
+    margin_m: float
+    settings: GridCoverSettings = field(default_factory=GridCoverSettings)
+    fitted: dict[Tile, list[GridPiece]] = field(default_factory=dict)
+    windows: list[DistanceWindow] = field(default_factory=list)  # one per batch of tiles fitted, in order
+
+    def __post_init__(self) -> None:
+        res = self.grid.resolution_m
+        self.tile_cells = max(8, int(round(self.settings.tile_m / res)))
+        self.halo_cells = int(math.ceil(self.settings.halo_m / res))
+        self.join_cells = int(round(self.settings.join_m / (2.0 * res)))  # dilating both by half joins them
+        # Distances are needed up to margin + tolerance beyond the halo, plus a cell of rounding.
+        self.reach_cells = int(math.ceil((self.margin_m + self.settings.tolerance_m) / res)) + 2
+        rows, cols = self.grid.shape
+        self.tiles_shape = (-(-(cols + 2) // self.tile_cells), -(-(rows + 2) // self.tile_cells))
+        self.fit_count = 0  # ellipse fits made (a piece that is split counts too), for reports
+
+    @property
+    def reach_m(self) -> float:
+        """How far beyond the tiles fitted with it any grown ellipse can reach."""
+        return self.settings.halo_m
+
+    def tile_range(self, tile: Tile) -> tuple[slice, slice]:
+        """(rows, columns) of a tile's cells; the tiles start one cell before the map (its blocked ring)."""
+        t = self.tile_cells
+        a, b = tile
+        rows, cols = self.grid.shape
+        return slice(b * t - 1, min((b + 1) * t - 1, rows + 1)), slice(a * t - 1, min((a + 1) * t - 1, cols + 1))
+
+    def tiles_near(self, points: FloatArray, radius_m: float) -> set[Tile]:
+        """Tiles whose cells come within `radius_m` of some world point (a square round each point)."""
+        if not len(points):
+            return set()
+        g = self.grid.to_grid(points) / self.grid.resolution_m + 1.0  # in cells, from the ring's corner
+        reach = radius_m / self.grid.resolution_m
+        top = np.array(self.tiles_shape) - 1
+        lo = np.clip(np.floor((g - reach) / self.tile_cells).astype(int), 0, top)
+        hi = np.clip(np.floor((g + reach) / self.tile_cells).astype(int), 0, top)
+        spans = np.unique(np.hstack([lo, hi]), axis=0)
+        return {(x, y) for ax, ay, bx, by in spans.tolist() for x in range(ax, bx + 1) for y in range(ay, by + 1)}
+
+    def pieces(self, tiles: Iterable[Tile]) -> list[GridPiece]:
+        """The pieces of the given tiles, fitting the tiles not fitted yet."""
+        wanted = sorted(set(tiles))
+        missing = [t for t in wanted if t not in self.fitted]
+        for block in _blocks(missing):
+            self._fit_block(block)
+        return [piece for t in wanted for piece in self.fitted[t]]
+
+    # ------------------------------------------------------------------ one batch of tiles
+
+    def _fit_block(self, group: list[Tile]) -> None:
+        """Fit a group of neighbouring tiles on one distance transform over them and their halo, as whole
+        rectangles of tiles (`_rectangles`): a rectangle's border cells are pieces across its tiles' edges
+        (a wall is not cut at every tile), each kept under the tile of its first cell."""
+        ranges = [self.tile_range(t) for t in group]
+        h = self.halo_cells + 1
+        r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
+        c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
+        edt = self.grid.distance_window(slice(r0, r1), slice(c0, c1), halo=self.reach_cells)
+        half = 0.5 * self.grid.resolution_m
+        window = DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt - half, 0.0).astype(np.float32))
+        self.windows.append(window)
+        for tile in group:
+            self.fitted[tile] = []
+        parts = [part for block in _rectangles(group) if (part := self._pieces_of(block)) is not None]
+        if not parts:
+            return
+        # Every rectangle's pieces in one bisection: a level is one batch of array operations.
+        offsets = np.cumsum([0] + [int(part[1].max()) + 1 for part in parts[:-1]])
+        cells = np.vstack([part[0] for part in parts])
+        piece = np.concatenate([part[1] + offset for part, offset in zip(parts, offsets)])
+        boxes = np.vstack([part[2] for part in parts])
+        for made in self._bisect(cells, piece, boxes, window):
+            self.fitted[self._tile_of(made.cells[0])].append(made)
+
+    def _pieces_of(self, block: list[Tile]) -> tuple[IntArray, IntArray, IntArray] | None:
+        """A rectangle of tiles' border cells (by piece, then row, then column), their first pieces, and
+        each piece's box: the rectangle and its halo, where its grown ellipse must stay (its tiles are
+        fitted together, so that is within `reach_m` of tiles fitted with it)."""
+        ranges = [self.tile_range(t) for t in block]
+        rows = slice(min(r.start for r, _ in ranges), max(r.stop for r, _ in ranges))
+        cols = slice(min(c.start for _, c in ranges), max(c.stop for _, c in ranges))
+        border = self.grid.border_cells(rows, cols)
+        if not len(border):
+            return None
+        mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
+        mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
+        # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
+        # only if the wall's ellipse cannot take it within the tolerance.
+        near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
+        labels, _ = ndimage.label(near, structure=_EIGHT)
+        js, is_ = np.nonzero(mask)  # row by row, then column
+        _, piece = np.unique(labels[js, is_], return_inverse=True)
+        order = np.argsort(piece, kind="stable")
+        box = (rows.start - self.halo_cells, rows.stop + self.halo_cells,
+               cols.start - self.halo_cells, cols.stop + self.halo_cells)
+        return (np.column_stack([is_ + cols.start, js + rows.start])[order], piece[order],
+                np.array([box] * (int(piece.max()) + 1)))
+
+    def _tile_of(self, cell: IntArray) -> Tile:
+        return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
+
+    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, window: DistanceWindow):
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken."""
+        tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
+        while len(cells):
+            fit = _fit_boxes(cells, piece, res=res)
+            self.fit_count += fit.count
+            p, grown, excess = self._grow(fit, window, boxes)
+            side = _sides(cells, piece, fit)
+            below = np.bincount(piece, weights=side, minlength=fit.count)
+            splittable = (below > 0) & (below < fit.count_cells)
+            accept = (excess <= tolerance) | ~splittable
+            yield from self._accepted(fit, p, grown, excess, accept, cells, piece)
+            # The split pieces' halves: piece 2k + side, renumbered, still by row then column within.
+            keep = ~accept[piece]
+            halves = 2 * piece[keep] + side[keep].astype(np.intp)
+            labels, halves = np.unique(halves, return_inverse=True)
+            order = np.argsort(halves, kind="stable")
+            cells, piece = cells[keep][order], halves[order]
+            boxes = boxes[labels // 2]
+
+    def _grow(self, fit: _Fits, window: DistanceWindow, boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
+        `growths` values of p per piece.
+
+        Every candidate's boundary is sampled two cells apart first: the maximum is a lower bound on the
+        excess. The candidate with the least bound then gets its boundary sampled a cell apart and its
+        interior two cells apart; a piece whose bound already exceeds the tolerance is split without that.
+        """
+        r, res = self.margin_m, self.grid.resolution_m
+        a, b = fit.semi_axes[:, 0], fit.semi_axes[:, 1]
+        lo, hi = np.maximum(b, 1e-6) / r, np.maximum(a, 1e-6) / r
+        steps = np.arange(self.settings.growths) / max(self.settings.growths - 1, 1)
+        p = lo[:, None] * (hi / lo)[:, None] ** steps[None, :]  # (P, G)
+        grown = np.sqrt((1.0 + 1.0 / p)[..., None] * fit.semi_axes[:, None, :] ** 2 + ((1.0 + p) * r * r)[..., None])
+        P, G = p.shape
+        rows = np.repeat(np.arange(P), G)
+        bound = _sample_max(fit.centre[rows], fit.axes[rows], grown.reshape(-1, 2), boxes[rows], window, res=res,
+                            step_cells=2.0, interior=False).reshape(P, G)
+        best = np.argmin(bound, axis=1)
+        take = np.arange(P)
+        excess = bound[take, best] - r
+        near = np.flatnonzero(excess <= self.settings.tolerance_m)
+        if len(near):
+            chosen = (fit.centre[near], fit.axes[near], grown[near, best[near]], boxes[near], window)
+            edge = _sample_max(*chosen, res=res, step_cells=1.0, interior=False)
+            inner = _sample_max(*chosen, res=res, step_cells=2.0, interior=True)
+            excess[near] = np.maximum(excess[near], np.maximum(edge, inner) - r)
+        return p[take, best], grown[take, best], excess
+
+    def _accepted(self, fit: _Fits, p: FloatArray, grown: FloatArray, excess: FloatArray, accept: np.ndarray,
+                  cells: IntArray, piece: IntArray):
+        """The accepted pieces as world ellipses, each proved to contain its cells (see the module)."""
+        idx = np.flatnonzero(accept)
+        if not len(idx):
+            return
+        res = self.grid.resolution_m
+        R = self.grid.rotation
+        origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m])
+        centre = fit.centre[idx] @ R.T + origin  # world centres
+        axes = np.einsum("ij,kjl->kil", R, fit.axes[idx])  # world axis directions (columns)
+        semi = fit.semi_axes[idx].copy()
+        # The hull's corners of each accepted piece, in the world.
+        on = accept[fit.corner_piece]
+        corner_owner = np.searchsorted(idx, fit.corner_piece[on])
+        corners = self.grid.to_world(fit.corners[on] * res)
+        for _ in range(2):
+            A = _shape(axes, semi)
+            u = np.einsum("kij,kj->ki", A[corner_owner], corners - centre[corner_owner])
+            worst = np.zeros(len(idx))
+            np.maximum.at(worst, corner_owner, np.sqrt(np.einsum("ki,ki->k", u, u)))
+            over = worst > 1.0 - _PROOF_MARGIN
+            if not over.any():
+                break
+            semi[over] *= (worst[over] / (1.0 - 2.0 * _PROOF_MARGIN))[:, None]  # aimed past the bound by its rounding
+        else:
+            raise AssertionError("a fitted ellipse does not contain its cells")
+        r = self.margin_m
+        pk = p[idx]
+        grown_semi = np.sqrt((1.0 + 1.0 / pk)[:, None] * semi**2 + ((1.0 + pk) * r * r)[:, None])
+        grown_A = _shape(axes, grown_semi)
+        raw_Ab = np.concatenate([A, -np.einsum("kij,kj->ki", A, centre)[:, :, None]], axis=2)
+        grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
+        starts = np.searchsorted(piece, idx)
+        ends = np.searchsorted(piece, idx, side="right")
+        for k in range(len(idx)):
+            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=float(pk[k]), excess_m=float(excess[idx[k]]),
+                            cells=cells[starts[k] : ends[k]])
+
+
+def _shape(axes: FloatArray, semi: FloatArray) -> FloatArray:
+    """A = V diag(1/a) Vᵀ for each ellipse: (k, 2, 2) from axis directions (k, 2, 2) and semi-axes (k, 2)."""
+    return np.einsum("kij,kj,klj->kil", axes, 1.0 / semi, axes)
+
+
+@dataclass(frozen=True)
+class _Fits:
+    """A level's pieces: cell counts, principal directions, the hull corners, and the ellipses fitted
+    (grid-frame metres: centres, semi-axes largest first, axis directions as columns)."""
+
+    count: int
+    count_cells: FloatArray
+    mean: FloatArray  # mean cell centre, in cells
+    direction: FloatArray  # principal direction (unit), in cells
+    corners: IntArray  # hull corners (in cells) of every piece, piece by piece
+    corner_piece: IntArray
+    centre: FloatArray
+    semi_axes: FloatArray
+    axes: FloatArray
+
+
+def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
+    """Every piece's Löwner–John ellipse of its smaller bounding rectangle (see the module docstring)."""
+    starts = np.flatnonzero(np.r_[True, piece[1:] != piece[:-1]])
+    count = len(starts)
+    n = np.diff(np.r_[starts, len(piece)]).astype(float)
+    xy = cells + 0.5
+    mean = np.add.reduceat(xy, starts, axis=0) / n[:, None]
+    d = xy - mean[piece]
+    sxx = np.add.reduceat(d[:, 0] * d[:, 0], starts)
+    syy = np.add.reduceat(d[:, 1] * d[:, 1], starts)
+    sxy = np.add.reduceat(d[:, 0] * d[:, 1], starts)
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # of the major axis
+    direction = np.column_stack([np.cos(angle), np.sin(angle)])
+    # The first and last cell of each row of each piece: the corners of their cells bound the piece (a
+    # cell lies between its row's first and last, inside the rectangle of their corners).
+    row = cells[:, 1]
+    first = np.flatnonzero(np.r_[True, (row[1:] != row[:-1]) | (piece[1:] != piece[:-1])])
+    last = np.r_[first[1:] - 1, len(row) - 1]
+    i0, i1, j = cells[first, 0], cells[last, 0] + 1, row[first]
+    corners = np.stack([np.column_stack([i0, j]), np.column_stack([i0, j + 1]),
+                        np.column_stack([i1, j]), np.column_stack([i1, j + 1])], axis=1).reshape(-1, 2)
+    corner_piece = np.repeat(piece[first], 4)
+    cstarts = np.flatnonzero(np.r_[True, corner_piece[1:] != corner_piece[:-1]])
+    cf = corners.astype(float)
+    # The rectangle along the principal axes, and along the grid's; the smaller is fitted.
+    u, v = direction[corner_piece], np.column_stack([-direction[:, 1], direction[:, 0]])[corner_piece]
+    along = np.column_stack([np.einsum("ij,ij->i", cf, u), np.einsum("ij,ij->i", cf, v)])
+    lo_p, hi_p = np.minimum.reduceat(along, cstarts, axis=0), np.maximum.reduceat(along, cstarts, axis=0)
+    lo_g, hi_g = np.minimum.reduceat(cf, cstarts, axis=0), np.maximum.reduceat(cf, cstarts, axis=0)
+    principal = np.prod(hi_p - lo_p, axis=1) < np.prod(hi_g - lo_g, axis=1) * (1.0 - 1e-9)
+    axes = np.zeros((count, 2, 2))
+    axes[:, :, 0] = np.where(principal[:, None], direction, [1.0, 0.0])
+    axes[:, :, 1] = np.where(principal[:, None], np.column_stack([-direction[:, 1], direction[:, 0]]), [0.0, 1.0])
+    lo = np.where(principal[:, None], lo_p, lo_g)
+    hi = np.where(principal[:, None], hi_p, hi_g)
+    half = 0.5 * res * (hi - lo)
+    centre = np.einsum("kij,kj->ki", axes, 0.5 * res * (lo + hi))
+    swap = half[:, 1] > half[:, 0]  # the larger semi-axis first
+    half[swap] = half[swap][:, ::-1]
+    axes[swap] = axes[swap][:, :, ::-1]
+    return _Fits(count=count, count_cells=n, mean=mean, direction=direction, corners=corners,
+                 corner_piece=corner_piece, centre=centre, semi_axes=math.sqrt(2.0) * half, axes=axes)
+
+
+def _sides(cells: IntArray, piece: IntArray, fit: _Fits) -> NDArray[np.bool_]:
+    """Which side of the line through its piece's mean, across the principal axis, each cell lies on."""
+    d = cells + 0.5 - fit.mean[piece]
+    return np.einsum("ij,ij->i", d, fit.direction[piece]) <= 0.0
+
+
+def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: IntArray, window: DistanceWindow, *,
+                res: float, step_cells: float, interior: bool) -> FloatArray:
+    """For each ellipse (grid-frame metres): the max over samples of its boundary, or of its disc
+    (`interior`), about `step_cells` apart, of the distance to the blocked region; +inf for one that
+    reaches outside its halo box (rows r0…r1, columns c0…c1, in cells)."""
+    ext = np.hypot(semi[:, 0:1] * axes[:, :, 0], semi[:, 1:2] * axes[:, :, 1])  # extent along x and y, metres
+    c = centre / res
+    e = ext / res
+    inside = ((c[:, 0] - e[:, 0] >= boxes[:, 2]) & (c[:, 0] + e[:, 0] <= boxes[:, 3])
+              & (c[:, 1] - e[:, 1] >= boxes[:, 0]) & (c[:, 1] + e[:, 1] <= boxes[:, 1]))
+    out = np.full(len(centre), np.inf)
+    k = np.flatnonzero(inside)
+    if not len(k):
+        return out
+    a, b = semi[k, 0] / (res * step_cells), semi[k, 1] / (res * step_cells)
+    if interior:
+        counts = np.clip(np.ceil(np.pi * a * b), 8, 20_000).astype(np.intp)
+    else:
+        counts = np.clip(np.ceil(2.0 * np.pi * np.maximum(a, b)), 16, 20_000).astype(np.intp)
+    owner = np.repeat(np.arange(len(k)), counts)
+    offsets = np.cumsum(counts) - counts
+    step = np.arange(len(owner)) - offsets[owner]
+    if interior:  # sunflower: evenly spread over the disc
+        radius = np.sqrt((step + 0.5) / counts[owner])
+        theta = step * _GOLDEN_RAD
+    else:
+        radius = 1.0
+        theta = (2.0 * np.pi) * step / counts[owner]
+    x, y = radius * np.cos(theta) * semi[k, 0][owner], radius * np.sin(theta) * semi[k, 1][owner]
+    V = axes[k][owner]
+    gx = centre[k, 0][owner] + V[:, 0, 0] * x + V[:, 0, 1] * y
+    gy = centre[k, 1][owner] + V[:, 1, 0] * x + V[:, 1, 1] * y
+    i = np.floor(gx / res).astype(np.intp) - window.col0
+    j = np.floor(gy / res).astype(np.intp) - window.row0
+    out[k] = np.maximum.reduceat(window.distance[j, i], offsets)
+    return out
+
+
+def _blocks(tiles: list[Tile]) -> list[list[Tile]]:
+    """Group tiles into batches that share one distance transform: the 8-connected groups of tiles,
+    each cut in halves along its longer side while its bounding box is more than twice its tiles."""
+    out: list[list[Tile]] = []
+    remaining = set(tiles)
+    while remaining:
+        seed = remaining.pop()
+        group, frontier = [seed], [seed]
+        while frontier:
+            x, y = frontier.pop()
+            for n in ((x + dx, y + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)):
+                if n in remaining:
+                    remaining.remove(n)
+                    group.append(n)
+                    frontier.append(n)
+        out.extend(_halve(sorted(group)))
+    return out
+
+
+def _halve(group: list[Tile]) -> list[list[Tile]]:
+    xs, ys = [t[0] for t in group], [t[1] for t in group]
+    w, h = max(xs) - min(xs) + 1, max(ys) - min(ys) + 1
+    if w * h <= 2 * len(group) or len(group) <= 2:
+        return [group]
+    axis, mid = (0, (min(xs) + max(xs) + 1) / 2) if w >= h else (1, (min(ys) + max(ys) + 1) / 2)
+    return _halve([t for t in group if t[axis] < mid]) + _halve([t for t in group if t[axis] >= mid])
+
+
+def _rectangles(tiles: list[Tile]) -> list[list[Tile]]:
+    """The tiles as whole rectangles of tiles: greedily from the lowest row's first tile, as far along
+    the row as the tiles go, then down the rows while the same run is there."""
+    remaining = set(tiles)
+    out: list[list[Tile]] = []
+    while remaining:
+        x0, y0 = min(remaining, key=lambda t: (t[1], t[0]))
+        x1 = x0
+        while (x1 + 1, y0) in remaining:
+            x1 += 1
+        y1 = y0
+        while all((x, y1 + 1) in remaining for x in range(x0, x1 + 1)):
+            y1 += 1
+        block = [(x, y) for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)]
+        remaining.difference_update(block)
+        out.append(block)
+    return out

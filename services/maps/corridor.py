@@ -1,0 +1,444 @@
+"""Planning on an occupancy grid at a cost that follows the route, not the map.
+
+A grid planner pays for the whole map (a distance transform and a Dijkstra over every cell). Here only
+what the query can use is built:
+
+1. A coarse search (`CoarseGrid`): the blocked cells pooled into coarse cells of side s (a coarse cell
+   is blocked when any of its cells is), one distance transform of that small grid, and Dijkstra
+   (scipy.sparse.csgraph) over the coarse cells a robot could be in. A coarse cell C holding a point x at
+   least r from every blocked cell is at most r − s√2 from the nearest blocked coarse cell C′ (centre to
+   centre): else, with q any blocked cell in C′, dist(x, q) ≤ s/√2 + dist(C, C′) + s/√2 < r. So the
+   coarse graph keeps every coarse cell a path can use and every step between neighbours it can take:
+   when it has no path, no path exists at all, and the planner says so. Its answer is the shortest path
+   and the corridor round it: every coarse cell on a path at most `slack` longer.
+2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor. Fitting
+   them computes the distance transform there, which tells the coarse cells there apart more finely (a
+   coarse cell is kept only if one of its cells is within half a cell's diagonal of being r clear, which
+   still keeps every cell a path can use); the coarse search runs again, and again, until its corridor
+   lies in tiles already fitted. An optimistic coarse grid would otherwise send the corridor through a
+   door the robot does not fit.
+3. The exact route search and refinement (`services.planner.core.plan_until_verified`: tangent graph,
+   convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, inside a fence
+   of thin ellipses where the corridor meets open floor (`_fence`): without it the route search, which
+   sees no wall it was not given, found its way through them, and every such way took another plan.
+4. The paths are then held against every other fitted ellipse and every tile they come near: a grown
+   ellipse reaches at most `GridCover.reach_m` beyond the tiles fitted with it, so a path further than
+   that from every tile not fitted can touch no ellipse those tiles will get. If they touch or come near
+   one, it is fitted and added and the plan made again. The path returned touches no ellipse of the
+   whole map's cover, and its route is the shortest among a subset of them within the corridor: the
+   exact optimum of the model within its corridor (a relaxation's optimum that is feasible is optimal).
+   A fenced search that finds nothing is made again without the fence; one without it that finds no
+   route among some of the ellipses proves there is none among all of them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from services.geometry import Ellipse, EllipseStack, FloatArray
+from schemas.occupancy import OccupancyGrid
+from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridCoverSettings, GridPiece, IntArray
+from services.planner.core import PathPlan
+from services.smoother.core import Smoothed
+
+_DIAGONAL = math.sqrt(2.0)
+# The smoothed curve's samples are at most 0.05 m apart and its curvature κ ≤ 1.2 / m is verified, so it
+# strays from their chords by at most κ h² / 8 < 4e-4 m; a grown ellipse's semi-axes are at least the
+# margin r ≥ 0.2 m (so ‖A‖ ≤ 1 / r), so on the curve its level is within 2e-3 of the chords'.
+_CURVE_LEVEL = 1.002
+
+
+@dataclass(frozen=True)
+class CorridorSettings:
+    coarse_m: float = 0.2  # side of a coarse cell (rounded to a whole number of cells)
+    slack: float = 0.05  # the corridor: coarse cells on a path at most this much longer than the shortest
+    band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
+    near_m: float = 0.6  # ... and their ellipses within this of it planned among (the fence is 2 cells out)
+    fence: bool = True  # search the route inside the corridor (see `_fence`)
+    keep_m: float = 1.5  # the corridor keeps this much round the start and goals
+    max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
+    max_rounds: int = 12  # plans at most while the path keeps meeting ellipses not planned among
+
+
+@dataclass(frozen=True)
+class CoarseRoute:
+    """The coarse search's answer: its shortest path (world points, string-pulled) start → goals, the
+    centres of every coarse cell on a path at most `slack` longer (the corridor), or why there is none."""
+
+    status: Literal["ok", "no_path"]
+    points: FloatArray
+    corridor: FloatArray
+    length_m: float = 0.0
+    reason: str = ""
+    cells: np.ndarray | None = None  # the corridor's coarse cells (a mask of the coarse grid)
+
+
+@dataclass(eq=False)
+class CoarseGrid:
+    """The coarse cells a robot of clearance `margin_m` may be in, on a grid of `coarse_m` cells (the map
+    and a ring of blocked coarse cells round it), and the 8-connected shortest paths among them."""
+
+    grid: OccupancyGrid
+    margin_m: float
+    coarse_m: float
+    passable: np.ndarray = field(init=False)
+    _graph: tuple[np.ndarray, sparse.csr_array] | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        res = self.grid.resolution_m
+        self.k = k = max(1, int(round(self.coarse_m / res)))
+        self.s = k * res
+        rows, cols = self.grid.shape
+        # Coarse cell (a, b) holds the map's cells from ((a − 1) k, (b − 1) k): a ring beyond the map.
+        self.nr, self.nc = -(-rows // k) + 2, -(-cols // k) + 2
+        blocked = self.grid.padded_blocked(slice(-k, (self.nr - 1) * k), slice(-k, (self.nc - 1) * k))
+        pooled = blocked.reshape(self.nr, k, self.nc, k).any(axis=(1, 3))
+        self.passable = ndimage.distance_transform_edt(~pooled) * self.s >= self.margin_m - self.s * _DIAGONAL
+
+    def refine(self, window: DistanceWindow, *, watch: np.ndarray | None = None) -> int:
+        """Close the coarse cells inside the window none of whose cells is within half a cell's diagonal
+        of being `margin_m` clear (the window's D bounds a cell centre's distance from above, and a point
+        of the cell is within half a diagonal of the centre); how many were closed (of those in the
+        `watch` mask, if one is given)."""
+        k, res = self.k, self.grid.resolution_m
+        rows, cols = window.distance.shape
+        # The coarse cells wholly inside the window: cell b spans map rows (b − 1) k … b k.
+        b0, b1 = max(-(-(window.row0 + k) // k), 0), min((window.row0 + rows + k) // k, self.nr)
+        a0, a1 = max(-(-(window.col0 + k) // k), 0), min((window.col0 + cols + k) // k, self.nc)
+        if b1 <= b0 or a1 <= a0:
+            return 0
+        r0, c0 = (b0 - 1) * k - window.row0, (a0 - 1) * k - window.col0
+        block = window.distance[r0 : r0 + (b1 - b0) * k, c0 : c0 + (a1 - a0) * k]
+        best = block.reshape(b1 - b0, k, a1 - a0, k).max(axis=(1, 3))
+        close = (best < self.margin_m - res / _DIAGONAL) & self.passable[b0:b1, a0:a1]
+        if close.any():
+            self.passable[b0:b1, a0:a1] &= ~close
+            self._graph = None
+        return int(close.sum() if watch is None else (close & watch[b0:b1, a0:a1]).sum())
+
+    def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
+        """(coarse cell of each node, the graph), rebuilt after a refinement."""
+        if self._graph is None:
+            nodes = np.flatnonzero(self.passable)
+            index = np.full(self.passable.shape, -1, dtype=np.int64)
+            index.flat[nodes] = np.arange(len(nodes))
+            self._graph = (nodes, _grid_graph(self.passable, index, self.s))
+        return self._graph
+
+    def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
+        """The shortest 16-connected path through `waypoints` (start, goals) in order, and the corridor: for each leg
+        a → b, the coarse cells c with d(a, c) + d(c, b) ≤ (1 + slack) d(a, b), every cell of a path at
+        most `slack` longer — a route round the other side of an obstacle, hardly longer, is in it too
+        (the graph's metric is up to 2.7 % off the Euclidean one)."""
+        g = self.grid.to_grid(waypoints) / self.s + 1.0  # coarse cell coordinates, counting the ring
+        wa, wb = np.floor(g[:, 0]).astype(int), np.floor(g[:, 1]).astype(int)
+        names = ["start"] + [f"goal {k + 1}" for k in range(len(waypoints) - 1)]
+        none = np.zeros((0, 2))
+        for name, a, b in zip(names, wa, wb):
+            if not (0 <= a < self.nc and 0 <= b < self.nr) or not self.passable[b, a]:
+                return CoarseRoute("no_path", none, none, reason=f"the {name} is within the margin "
+                                   f"({self.margin_m:.3f} m) of a blocked cell: no path")
+        nodes, graph = self._nodes()
+        targets = np.searchsorted(nodes, wb * self.nc + wa)
+        # Only cells a near-shortest path can use matter: the search stops at twice the longest leg's
+        # straight length and a turn round a building (and goes on without a limit if that misses a goal).
+        legs = np.linalg.norm(np.diff(waypoints, axis=0), axis=1)
+        limit = 2.0 * float(legs.max()) + 20.0
+        dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True, limit=limit)
+        if not all(np.isfinite(dist[k, targets[k + 1]]) and dist[k, targets[k + 1]] * (1.0 + slack) <= limit
+                   for k in range(len(targets) - 1)):
+            dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True)
+        chain, ends = [int(targets[0])], [0]
+        near = np.zeros(len(nodes), dtype=bool)
+        total = 0.0
+        for leg in range(len(targets) - 1):
+            here = float(dist[leg, targets[leg + 1]])
+            if not np.isfinite(here):
+                return CoarseRoute("no_path", none, none, reason=(
+                    f"no path to {names[leg + 1]}: the coarse grid ({self.s:.2f} m cells), which keeps every "
+                    f"cell a path at clearance {self.margin_m:.3f} m can use, has none, so none exists"))
+            total += here
+            near |= dist[leg] + dist[leg + 1] <= (1.0 + slack) * here + 1e-9
+            leg_nodes = [int(targets[leg + 1])]
+            while leg_nodes[-1] != targets[leg]:
+                leg_nodes.append(int(pred[leg, leg_nodes[-1]]))
+            chain.extend(leg_nodes[::-1][1:])
+            ends.append(len(chain) - 1)
+
+        def centres(at: np.ndarray) -> FloatArray:  # coarse cells' centres, in coarse cells from the map's corner
+            b, a = np.divmod(nodes[at], self.nc)
+            return np.column_stack([a, b]) - 0.5
+
+        path = centres(np.asarray(chain))
+        path[ends] = g - 1.0  # the waypoints themselves, each a vertex of the string-pulled path
+        keep = np.zeros(len(path), dtype=bool)
+        keep[ends] = True
+        points = self.grid.to_world(_pulled(path, self.passable, keep=keep) * self.s)
+        corridor = self.grid.to_world(centres(np.flatnonzero(near)) * self.s)
+        mask = np.zeros(self.passable.shape, dtype=bool)
+        mask.flat[nodes[near]] = True
+        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask)
+
+    def cells_grid(self, mask: np.ndarray) -> OccupancyGrid:
+        """The coarse cells as a grid of their own (same frame; the ring included), those off `mask` blocked."""
+        R = self.grid.rotation
+        origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m]) - R @ np.array([self.s, self.s])
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        return OccupancyGrid.from_mask(~mask, resolution_m=self.s, origin=(origin[0], origin[1], yaw),
+                                       source="corridor")
+
+
+def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> FloatArray:
+    """The path (coarse-cell coordinates from the map's corner) with every vertex dropped that a straight
+    line over passable coarse cells can skip (string pulling): an 8-connected path wanders between
+    equally long ones, and the route it stands for is straight. Greedy: from each vertex kept, the
+    furthest later vertex in sight by bisection (sight: samples a quarter cell apart on passable cells);
+    the vertices marked `keep` stay."""
+
+    def clear(p: FloatArray, q: FloatArray) -> bool:
+        n = int(math.ceil(4.0 * float(np.max(np.abs(q - p))))) + 1
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        c = np.floor(p + t * (q - p)).astype(np.intp) + 1  # counting the ring
+        return bool(np.all(passable[c[:, 1], c[:, 0]]))
+
+    out = [0]
+    while out[-1] < len(path) - 1:
+        i = out[-1]
+        stop = i + 1 + int(np.argmax(keep[i + 1 :]))  # the next vertex that must stay
+        lo, hi = i + 1, stop
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if clear(path[i], path[mid]):
+                lo = mid
+            else:
+                hi = mid - 1
+        out.append(lo)
+    return path[out]
+
+
+# Steps of the coarse graph: the 8 neighbours and the 8 knight's moves, one of each pair of opposites. With
+# them the graph's shortest paths are within 2.7 % of the Euclidean length (8 neighbours: 8.2 %).
+_STEPS = ((0, 1), (1, 0), (1, 1), (1, -1), (1, 2), (2, 1), (1, -2), (2, -1))
+
+
+def _grid_graph(passable: np.ndarray, index: np.ndarray, step_m: float) -> sparse.csr_array:
+    """The 16-connected graph of the passable cells, edges weighted by their centres' distance. A knight's
+    move is taken only when both cells it passes beside are passable too (so it cuts no blocked corner
+    the two king's moves round it would not)."""
+    rows, cols, weights = [], [], []
+    n_rows, n_cols = passable.shape
+
+    def shifted(dr: int, dc: int) -> tuple[slice, slice]:  # cells (r + dr, c + dc) for the window's (r, c)
+        return slice(dr + pad_r, n_rows - pad_r_hi + dr), slice(dc + pad_c, n_cols - pad_c_hi + dc)
+
+    for dr, dc in _STEPS:
+        pad_r, pad_r_hi = 0, dr  # dr ≥ 0 always
+        pad_c, pad_c_hi = max(0, -dc), max(0, dc)
+        a, b = shifted(0, 0), shifted(dr, dc)
+        ok = passable[a] & passable[b]
+        if abs(dr) + abs(dc) == 3:  # knight: the two cells beside its line
+            sr, sc = (dr // 2, dc) if abs(dr) == 2 else (dr, dc // 2)
+            ok &= passable[shifted(sr, sc)] & passable[shifted(dr - sr, dc - sc)]
+        rows.append(index[a][ok])
+        cols.append(index[b][ok])
+        weights.append(np.full(len(rows[-1]), math.hypot(dr, dc) * step_m))
+    n = int(passable.sum())
+    return sparse.csr_array((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+
+
+@dataclass(frozen=True)
+class CorridorPlan:
+    """What `plan_in_corridor` found: the plan and its smoothed curve (as `plan_until_verified`), the
+    ellipses it was made among, the coarse route, how much of the map's cover was fitted, and how many
+    coarse searches and plans it took."""
+
+    plan: PathPlan
+    smoothed: Smoothed | None
+    grown: list[Ellipse]
+    coarse: CoarseRoute
+    tiles_fitted: int
+    tiles_total: int
+    searches: int
+    rounds: int
+    fence: int = 0  # ellipses of the fence round the corridor the route was searched in (0: none)
+
+
+def plan_in_corridor(
+    *,
+    cover: GridCover,
+    waypoints: FloatArray,
+    fixed: list[Ellipse],
+    plan_fn: Callable[[list[Ellipse]], tuple[PathPlan, Smoothed | None]],
+    settings: CorridorSettings = CorridorSettings(),
+    timer: Callable[[str], AbstractContextManager] = nullcontext,
+) -> CorridorPlan:
+    """Plan start → goals (`waypoints`) among `fixed` ellipses (the scenario's other obstacles, grown) and
+    the grid cover's, fitting only the tiles the plan comes near (see the module docstring).
+
+    The plan is made among the fixed ellipses and the fitted ones that come within `near_m` of the
+    corridor; then the paths are checked against every other fitted ellipse (the exact segment test on
+    the refined points, and on the smoothed curve's samples at `_CURVE_LEVEL`) and against the tiles
+    not fitted, and planned again with whatever they touch. `plan_fn(grown)` plans on a list of grown
+    ellipses (`cvxnav.plan.plan_on_model`); `timer(stage)` wraps the "corridor" and "fit" steps.
+    """
+    total = cover.tiles_shape[0] * cover.tiles_shape[1]
+    with timer("corridor"):
+        coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m)
+    tiles: set = set()
+    with timer("corridor"):
+        coarse = coarse_grid.route(waypoints, slack=settings.slack)
+    searches = 1
+    while coarse.status == "ok":
+        with timer("fit"):
+            line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
+            new = cover.tiles_near(line, settings.band_m) - tiles
+            if not new:
+                break
+            tiles |= new
+            refined = len(cover.windows)
+            cover.pieces(new)
+        with timer("corridor"):
+            # The new tiles' distance transforms tell their coarse cells apart more finely; if none of
+            # the corridor's is closed, the shortest path and the corridor are what they were.
+            closed = [coarse_grid.refine(window, watch=coarse.cells) for window in cover.windows[refined:]]
+            if not any(closed) or searches >= settings.max_searches:
+                break
+            coarse = coarse_grid.route(waypoints, slack=settings.slack)
+            searches += 1
+    if coarse.status != "ok":
+        plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
+        return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, searches, 0)
+    with timer("fit"):
+        fitted = cover.pieces(tiles)
+        used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
+        fence = _fence(coarse_grid, coarse, waypoints, keep_m=settings.keep_m) if settings.fence else []
+    plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
+    for rounds in range(1, settings.max_rounds + 1):
+        grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
+        plan, smoothed = plan_fn(grown + fence)
+        if plan.status != "ok" or smoothed is None or not smoothed.verification.ok:
+            if not fence:
+                break  # no route among a subset of the ellipses: none among all of them
+            fence = []  # the fence may have closed the corridor (its cells are coarse): plan without it
+            continue
+        with timer("fit"):
+            new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
+            if new:
+                tiles |= new
+                fitted = cover.pieces(tiles)
+            planned = {id(piece) for piece in used}
+            others = [piece for piece in fitted if id(piece) not in planned]
+            hit = np.union1d(_entered([p.grown for p in others], plan.points, level=1.0),
+                             _entered([p.grown for p in others], smoothed.points, level=_CURVE_LEVEL))
+            if not len(hit):
+                break
+            used += [others[k] for k in hit.tolist()]
+    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, len(fence))
+
+
+def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, *, keep_m: float) -> list[Ellipse]:
+    """Ellipses round the corridor: the passable coarse cells off it that touch it (a band one coarse cell
+    wide), covered as walls are (at the coarse grid's resolution, a loose tolerance), so that the route
+    search stays in the corridor rather than find a way through walls it was not given. Where the
+    corridor meets impassable cells (walls within the margin) there is no fence: the walls' own ellipses
+    are there, and a fence's would bulge into a corridor no wider than the passage. The corridor is
+    widened by a coarse cell and by a disc of `keep_m` round each waypoint (a route leaves its start
+    along the heading before it turns)."""
+    mask = ndimage.binary_dilation(coarse.cells, structure=np.ones((3, 3), dtype=bool))
+    nr, nc = mask.shape
+    rows, cols = np.mgrid[0:nr, 0:nc]
+    g = coarse_grid.grid.to_grid(waypoints) / coarse_grid.s + 0.5  # centres' coordinates: cell + 0.5 − ring
+    radius = keep_m / coarse_grid.s
+    for gx, gy in g:
+        mask |= (cols - gx) ** 2 + (rows - gy) ** 2 <= radius**2
+    band = ndimage.binary_dilation(mask, structure=np.ones((3, 3), dtype=bool)) & ~mask & coarse_grid.passable
+    cells = coarse_grid.cells_grid(~band)
+    fence = GridCover(cells, margin_m=0.5 * coarse_grid.s,
+                      settings=GridCoverSettings(tolerance_m=2.0 * coarse_grid.s, tile_m=32 * coarse_grid.s,
+                                                 halo_m=8 * coarse_grid.s, join_m=0.0))
+    b, a = np.nonzero(band)  # the fence's tiles are those its band's cells are in
+    return [piece.raw for piece in fence.pieces(fence.tiles_near(cells.to_world((np.column_stack([a, b]) + 0.5)
+                                                                                 * coarse_grid.s), 0.0))]
+
+
+def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:
+    """The pieces whose grown ellipse lies in no other's (the others' union is the same without them, so
+    a route among them is one among all): a walls' cover overlaps itself, and specks lie in their walls'.
+
+    Gᵢ ⊆ Gⱼ when ‖Aⱼ x + bⱼ‖ ≤ 1 all round Gᵢ's boundary x(θ) = cᵢ + Lᵢ u(θ) (Lᵢ = Aᵢ⁻¹): that level is
+    ‖M u(θ) + d‖ with M = Aⱼ Lᵢ, whose derivative in θ is at most ‖M‖₂, so it is at most its largest value
+    at `samples` evenly spaced angles plus ‖M‖_F π / samples, which is required to be ≤ 1. Of two equal
+    ellipses the later is the one dropped, and a dropped one's container is kept or is itself inside a
+    larger one that is.
+    """
+    if len(pieces) < 2:
+        return list(range(len(pieces)))
+    A = np.array([p.grown_Ab[:, :2] for p in pieces])
+    b = np.array([p.grown_Ab[:, 2] for p in pieces])
+    stack = EllipseStack(A=A, b=b)
+    centre, (major, minor) = stack.centers, stack.semi_axes.T
+    area = major * minor
+    # Candidates: a container reaches past the other's centre by at least its minor semi-axis.
+    tree = cKDTree(centre)
+    lists = tree.query_ball_point(centre, r=np.maximum(major.max() - minor, 0.0))
+    i = np.repeat(np.arange(len(pieces)), [len(x) for x in lists])
+    j = np.concatenate([np.asarray(x, dtype=np.intp) for x in lists])
+    gap = np.linalg.norm(centre[i] - centre[j], axis=1)
+    keep = (i != j) & (gap <= major[j] - minor[i]) & ((area[j] > area[i]) | ((area[j] == area[i]) & (j < i)))
+    i, j = i[keep], j[keep]
+    if not len(i):
+        return list(range(len(pieces)))
+    L = np.linalg.inv(A[i])
+    M = np.einsum("kab,kbc->kac", A[j], L)
+    d = np.einsum("kab,kb->ka", A[j], centre[i]) + b[j]
+    theta = 2.0 * np.pi * np.arange(samples) / samples
+    u = np.stack([np.cos(theta), np.sin(theta)])  # (2, samples)
+    level = np.linalg.norm(np.einsum("kab,bs->kas", M, u) + d[:, :, None], axis=1).max(axis=1)
+    inside = level + np.sqrt(np.einsum("kab,kab->k", M, M)) * np.pi / samples <= 1.0
+    dropped = np.zeros(len(pieces), dtype=bool)
+    dropped[i[inside]] = True
+    return np.flatnonzero(~dropped).tolist()
+
+
+def _near(pieces: list[GridPiece], line: FloatArray, distance_m: float) -> set[int]:
+    """The pieces whose grown ellipse's bounding disc comes within `distance_m` of one of the points."""
+    if not pieces:
+        return set()
+    stack = EllipseStack.of([p.grown for p in pieces])
+    gap = cKDTree(line).query(stack.centers)[0] - stack.reach
+    return set(np.flatnonzero(gap <= distance_m).tolist())
+
+
+def _entered(ellipses: list[Ellipse], path: FloatArray, *, level: float) -> IntArray:
+    """Indices of the ellipses some segment of the polyline comes within `level` of (eq. 2, exact)."""
+    if not ellipses or len(path) < 2:
+        return np.zeros(0, dtype=np.intp)
+    _, cols, levels = EllipseStack.of(ellipses).segment_pairs(path[:-1], path[1:])
+    return np.unique(cols[levels < level])
+
+
+def _touched(plan: PathPlan, smoothed: Smoothed | None) -> FloatArray:
+    """The plan's refined points and its smoothed curve's, as one polyline sampled at most 0.1 m apart
+    (the jump from one to the other is a segment of it too, which only makes the check stricter)."""
+    parts = [plan.points] + ([smoothed.points] if smoothed is not None else [])
+    return _densify(np.vstack([p for p in parts if len(p)]), 0.1)
+
+
+def _densify(points: FloatArray, step_m: float) -> FloatArray:
+    """The polyline with extra points so that consecutive ones are at most `step_m` apart."""
+    if len(points) < 2:
+        return points
+    d = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    n = np.maximum(1, np.ceil(d / step_m).astype(np.intp))
+    seg = np.repeat(np.arange(len(d)), n)
+    t = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
+    return np.vstack([points[seg] + t[:, None] * (points[seg + 1] - points[seg]), points[-1:]])

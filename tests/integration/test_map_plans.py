@@ -1,0 +1,54 @@
+"""`cvxnav plan`'s pipeline on real maps nobody here drew: Nav2's depot (with its REFERENCE optimum) and
+a corridor query on the ACES building's SLAM map. Each path is verified on the true geometry (the exact
+distance to the blocked squares), drivable, and found fitting only part of the map."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cvxnav.bench.maps import _ACES, _ACES_QUERIES, _scenario_doc
+from cvxnav.plan import plan_scenario
+from schemas.scenario import load_scenario
+from services.convert import ellipse_from_model
+from services.drive.controller import menger_curvature
+from services.geometry import polyline_length, resample_polyline
+
+
+def _assert_verified(scenario, plan) -> np.ndarray:
+    assert plan.status == "ok", plan.reason
+    path = np.asarray(plan.path)
+    assert np.allclose(path[0], scenario.start.xy)
+    assert np.linalg.norm(path[-1] - scenario.goals_array[-1]) <= scenario.goal_tolerance
+    dense = resample_polyline(path, max_spacing_m=0.01)
+    assert scenario.clearance(dense).min() >= scenario.inflation_m - 0.02
+    assert np.max(np.abs(menger_curvature(path))) <= 1.02 * scenario.max_curvature
+    assert all(ellipse_from_model(e).level(path).min() > 1.0 for e in plan.ellipsoids)
+    return path
+
+
+@pytest.mark.parametrize("name", ["depot-1", "depot-2"])
+def test_a_depot_query_is_within_2_percent_of_the_true_optimum(shared_dir: Path, name: str):
+    folder = shared_dir / "map-scenarios"
+    scenario = load_scenario(folder / f"{name}.json")
+    reference = json.loads((folder / "REFERENCE.json").read_text())["optimal_length"][name]
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    assert polyline_length(path) <= 1.02 * reference
+
+
+def test_a_corridor_query_on_the_aces_building(shared_dir: Path, tmp_path: Path):
+    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    if not aces.is_file():
+        pytest.skip(f"{aces} is absent")
+    a, b, heading = _ACES_QUERIES[0]
+    doc = _scenario_doc("aces", map_path=str(aces), start=(*_ACES[a], heading), goal=_ACES[b], description="")
+    (tmp_path / "aces.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "aces.json")
+    plan = plan_scenario(scenario)
+    path = _assert_verified(scenario, plan)
+    # Along the corridors: longer than the straight line, shorter than a grid planner's 8-connected path.
+    assert polyline_length(path) >= np.linalg.norm(scenario.goals_array[0] - scenario.start.xy)
+    assert len(plan.ellipsoids) < 1000  # of the ~2000 the whole map's cover has

@@ -1,0 +1,132 @@
+"""The corridor planner on occupancy grids: a coarse search that never closes a passage the robot fits
+through and so proves no_path when it finds none, a plan that touches no ellipse of the whole map's
+cover, and as short as the plan made on the whole cover."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry import EllipseStack, polyline_length
+from cvxnav.plan import PlanSettings, plan_on_model, plan_scenario
+from schemas.occupancy import OccupancyGrid
+from schemas.scenario import OccupancyGridObstacle, Scenario
+from services.ellipsoids.grid_cover import GridCover
+from services.maps.corridor import CoarseGrid, CorridorSettings, plan_in_corridor
+
+RES = 0.05
+MARGIN = 0.45  # the depot car's width / 2 + safety
+
+
+def _room(door_m: float | None, *, closed_goal: bool = False) -> OccupancyGrid:
+    """A 12 × 6 m room (walls a cell thick) split by a wall at x = 6 m with a door of `door_m` centred at
+    y = 3 m, and pillars on either side; `closed_goal` walls in the far end."""
+    rows, cols = int(6.0 / RES), int(12.0 / RES)
+    blocked = np.zeros((rows, cols), dtype=bool)
+    blocked[[0, -1], :] = blocked[:, [0, -1]] = True
+    blocked[:, cols // 2] = True
+    if door_m is not None:
+        half = int(round(door_m / RES / 2))
+        blocked[rows // 2 - half : rows // 2 + half, cols // 2] = False
+    for x, y in ((3.0, 2.0), (3.5, 4.2), (8.5, 3.6), (9.5, 1.5)):
+        blocked[int(y / RES) : int(y / RES) + 4, int(x / RES) : int(x / RES) + 4] = True
+    if closed_goal:
+        blocked[int(1.5 / RES) : int(4.5 / RES), int(10.0 / RES)] = True
+        blocked[int(1.5 / RES), int(10.0 / RES) :] = blocked[int(4.5 / RES), int(10.0 / RES) :] = True
+    return OccupancyGrid.from_mask(blocked, resolution_m=RES, source="room")
+
+
+def _scenario(grid: OccupancyGrid, start=(1.5, 3.0, 0.0), goal=(11.0, 3.0)) -> Scenario:
+    """The depot car in the room (the grid handed in as a ROS map would be: `from_grid`)."""
+    doc = {"format": "cvxnav.scenario/2", "name": "room", "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6,
+           "safety_distance": 0.3, "max_speed": 1.0, "max_steering_angle": 0.6, "max_steering_rate": 0.5},
+           "sensor": {"fov_deg": 180.0, "range": 5.0, "rays": 181, "rate_hz": 10.0}, "goal_tolerance": 0.3,
+           "bounds": {"min": [0.0, 0.0], "max": [12.0, 6.0]}, "expect": "reach",
+           "start": {"x": start[0], "y": start[1], "theta": start[2]}, "goals": [list(goal)]}
+    return Scenario.model_validate(doc).model_copy(update={"obstacles": [OccupancyGridObstacle.from_grid(grid)]})
+
+
+def _corridor_plan(scenario: Scenario, **settings):
+    grid = scenario.obstacles[0].grid
+    cover = GridCover(grid, margin_m=MARGIN)
+    found = plan_in_corridor(cover=cover, waypoints=np.vstack([scenario.start.xy, scenario.goals_array]), fixed=[],
+                             plan_fn=lambda ellipses: plan_on_model(scenario, ellipses),
+                             settings=CorridorSettings(**settings))
+    return found, cover
+
+
+def _whole(grid: OccupancyGrid):
+    cover = GridCover(grid, margin_m=MARGIN)
+    nx, ny = cover.tiles_shape
+    return cover.pieces([(x, y) for x in range(nx) for y in range(ny)])
+
+
+def test_a_door_just_wide_enough_is_open_on_the_coarse_grid_and_the_plan_goes_through_it():
+    door = 2 * MARGIN + 0.2
+    scenario = _scenario(_room(door))
+    found, _ = _corridor_plan(scenario)
+    assert found.plan.status == "ok" and found.smoothed.verification.ok
+    path = found.smoothed.points
+    crossing = path[np.argmin(np.abs(path[:, 0] - 6.0))]
+    assert abs(crossing[1] - 3.0) <= door / 2
+    # Clear of every ellipse of the whole map's cover, and of the true blocked squares by the margin.
+    stack = EllipseStack.of([p.grown for p in _whole(scenario.obstacles[0].grid)])
+    assert np.min(stack.segment_levels(path[:-1], path[1:])) >= 1.0
+    assert scenario.clearance(path).min() >= MARGIN - 0.02
+
+
+def test_the_coarse_grid_keeps_every_cell_a_path_can_use():
+    """Every free point at least the margin from the blocked cells lies in a passable coarse cell, before
+    and after the distance transform of fitted tiles refines the coarse cells."""
+    grid = _room(2 * MARGIN + 0.05)
+    coarse = CoarseGrid(grid, MARGIN, 0.2)
+    rng = np.random.default_rng(5)
+    points = rng.uniform([0.0, 0.0], [12.0, 6.0], (20_000, 2))
+    clear = points[grid.clearance(points) >= MARGIN]
+    cover = GridCover(grid, margin_m=MARGIN)
+    for refined in (False, True):
+        if refined:
+            cover.pieces([(x, y) for x in range(cover.tiles_shape[0]) for y in range(cover.tiles_shape[1])])
+            closed = sum(coarse.refine(window) for window in cover.windows)
+            assert closed > 0
+        g = grid.to_grid(clear) / coarse.s + 1.0
+        assert coarse.passable[np.floor(g[:, 1]).astype(int), np.floor(g[:, 0]).astype(int)].all()
+
+
+def test_no_way_through_is_no_path_with_the_coarse_grids_reason():
+    found, cover = _corridor_plan(_scenario(_room(None)))
+    assert found.plan.status == "no_path"
+    assert "coarse grid" in found.plan.reason and "so none exists" in found.plan.reason
+    assert len(cover.fitted) == 0  # nothing fitted: the coarse search decided
+
+
+def test_a_door_too_narrow_for_the_margin_is_no_path():
+    found, _ = _corridor_plan(_scenario(_room(2 * MARGIN - 0.15)))
+    assert found.plan.status == "no_path"
+
+
+def test_an_enclosed_goal_and_a_start_inside_the_margin_are_no_path_with_their_reasons():
+    found, _ = _corridor_plan(_scenario(_room(1.5, closed_goal=True)))
+    assert found.plan.status == "no_path" and "so none exists" in found.plan.reason
+    found, _ = _corridor_plan(_scenario(_room(1.5), start=(0.3, 3.0, 0.0)))
+    assert found.plan.status == "no_path" and found.plan.reason.startswith("the start is within the margin")
+
+
+def test_the_corridor_plan_is_as_short_as_the_plan_on_the_whole_cover():
+    scenario = _scenario(_room(1.5), start=(1.0, 1.0, 0.5), goal=(11.0, 5.0))
+    found, cover = _corridor_plan(scenario)
+    assert found.plan.status == "ok"
+    whole_plan, whole_smoothed = plan_on_model(scenario, [p.grown for p in _whole(scenario.obstacles[0].grid)])
+    assert whole_smoothed.verification.ok
+    assert polyline_length(found.smoothed.points) <= 1.001 * polyline_length(whole_smoothed.points)
+
+
+def test_plan_scenario_on_a_map_reports_the_stages_and_the_reason(tmp_path: Path):
+    scenario = _scenario(_room(None))
+    plan = plan_scenario(scenario, settings=PlanSettings(), load_ms=3.0)
+    assert plan.status == "no_path" and "so none exists" in plan.reason
+    assert plan.timings_ms.load == 3.0 and plan.timings_ms.corridor > 0.0
+    assert plan.timings_ms.total >= 3.0 + plan.timings_ms.corridor
+    json.loads(plan.model_dump_json())
