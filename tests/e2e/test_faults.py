@@ -30,29 +30,12 @@ from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.drive.vehicle import VehicleLimits
 from services.shell.zenoh_config import build_zenoh_config
-from procfs import alive
+from stage_processes import alive, argv, stage_pids
 
 PAPER = bundled_scenario()
 PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
 PREFIX = default_prefix()
 WAIT_S = 90.0  # a guard against a hung run, not a speed requirement
-
-
-def stage_processes(parent_pid: int) -> dict[str, tuple[int, list[str]]]:
-    """The `cvxnav service NAME` children of `parent_pid`: name -> (pid, argv), read from /proc."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            argv = [arg.decode() for arg in (entry / "cmdline").read_bytes().split(b"\0") if arg]
-        except OSError:
-            continue  # exited while we looked
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == parent_pid and "service" in argv:
-            found[argv[argv.index("service") + 1]] = (int(entry.name), argv)
-    return found
 
 
 def wait_for(condition: Callable[[], object], *, what: str) -> object:
@@ -123,10 +106,11 @@ def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, 
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     kills: list[Kill] = []
     try:
-        children = wait_for(lambda: (found := stage_processes(proc.pid)) and "sim" in found and found,
+        children = wait_for(lambda: (found := stage_pids(proc.pid)) and "sim" in found and found,
                             what="the sim to start")
-        config = build_zenoh_config(connect=[endpoint for _, argv in children.values() for endpoint in
-                                             json.loads(Path(argv[argv.index("--config") + 1]).read_text())
+        commands = [argv(pid) for pid in children.values()]
+        config = build_zenoh_config(connect=[endpoint for args in commands for endpoint in
+                                             json.loads(Path(args[args.index("--config") + 1]).read_text())
                                              ["listen"]["endpoints"]])
         # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
         config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
@@ -140,12 +124,12 @@ def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, 
                 # Kill while the car drives, some way along the route from the previous restart.
                 wait_for(lambda: observer.stamp_s >= drive_from_s and observer.speed_mps > 0.3,
                          what=f"the car to drive before killing {stage}")
-                old_pid = stage_processes(proc.pid)[stage][0]
+                old_pid = stage_pids(proc.pid)[stage]
                 with observer.lock:
                     index, killed_s, speed = len(observer.events), observer.stamp_s, observer.speed_mps
                 signalled = time.monotonic()
                 os.kill(old_pid, fault)
-                new_pid = wait_for(lambda: (pid := stage_processes(proc.pid).get(stage, (old_pid,))[0]) != old_pid
+                new_pid = wait_for(lambda: (pid := stage_pids(proc.pid).get(stage, old_pid)) != old_pid
                                    and pid, what=f"a new {stage} process")
                 replaced_after_s = time.monotonic() - signalled
                 back_s = wait_for(lambda: observer.back_since(stage, index), what=f"{stage}'s token to come back")

@@ -28,7 +28,7 @@ from schemas.messages import ClusterMsg, Clusters, Header, RobotState, decode
 from schemas.wiring import default_prefix, key
 from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
-from procfs import alive, cpu_s
+from stage_processes import alive, cpu_s
 
 PREFIX = default_prefix()
 WAIT_S = 60.0  # a guard against a hung test, not a speed requirement
