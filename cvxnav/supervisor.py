@@ -118,6 +118,8 @@ class Child:
     process: subprocess.Popen
     log_path: Path
     last_beat_s: float | None = None  # monotonic time of its newest keep-alive; None: none yet
+    # When its first keep-alive is due (monotonic s); None: a swapped command, watched for its exit only.
+    first_beat_by_s: float | None = None
     hung: str | None = None  # why the watchdog killed it
 
     def log_tail(self, *, lines: int = 5) -> str:
@@ -329,15 +331,20 @@ class Supervisor:
             process = subprocess.Popen(self._command(name), stdin=subprocess.DEVNULL, stdout=log,
                                        stderr=subprocess.STDOUT, start_new_session=True, env=env,
                                        preexec_fn=self._exit_with_me)
-        child = Child(name=name, process=process, log_path=log_path)
+        choice = self.options.stages.get(name)
+        speaks_watchdog = self.notify is not None and (choice is None or choice.command is None)
+        child = Child(name=name, process=process, log_path=log_path,
+                      first_beat_by_s=time.monotonic() + self.options.startup_timeout_s if speaks_watchdog else None)
         self.children[name] = child
         return child
 
     def watch(self) -> None:
         """Take the keep-alives that arrived; SIGKILL every child whose keep-alives stopped.
 
-        Armed by a child's first keep-alive; ``WATCHDOG=trigger`` (a stage stuck on one input) acts at
-        once. A stopped process dies of SIGKILL too, so nothing stopped is left behind.
+        A `cvxnav service` child must send its first keep-alive within `startup_timeout_s` of its start
+        (one stopped before its loop ran never sends any); a swapped command is watched once it sends
+        one. ``WATCHDOG=trigger`` (a stage stuck on one input) acts at once. A stopped process dies of
+        SIGKILL too, so nothing stopped is left behind.
         """
         if self.notify is None:
             return
@@ -353,11 +360,14 @@ class Supervisor:
             if "WATCHDOG=trigger" in states:
                 child.hung = "stuck on one input past its stall limit"
         for child in self.children.values():
-            if child.process.poll() is not None or child.last_beat_s is None:
+            if child.process.poll() is not None:
                 continue
-            silent_s = now - child.last_beat_s
-            if child.hung is None and silent_s > self.options.watchdog_s:
-                child.hung = f"no keep-alive for {silent_s:.1f} s"
+            if child.hung is None and child.last_beat_s is not None:
+                silent_s = now - child.last_beat_s
+                if silent_s > self.options.watchdog_s:
+                    child.hung = f"no keep-alive for {silent_s:.1f} s"
+            elif child.hung is None and child.first_beat_by_s is not None and now > child.first_beat_by_s:
+                child.hung = f"no keep-alive within {self.options.startup_timeout_s:.0f} s of its start"
             if child.hung is not None:
                 logger.warning("stage %s hung (%s): killing pid %d", child.name, child.hung, child.process.pid)
                 child.process.kill()
