@@ -42,8 +42,9 @@ Hangs are faults too. Every process the supervisor starts is told of a watchdog 
 service (``NOTIFY_SOCKET``, ``WATCHDOG_USEC``: `services.shell.watchdog`), and the run's own stages
 send keep-alives while their worker makes progress. A process whose keep-alives stop for longer than
 `RunOptions.watchdog_s` (stopped by SIGSTOP, frozen, or stuck on one input past its stall limit) is
-killed with SIGKILL, and then restarted like a crashed one; a process that never sent one (a swapped
-command that does not speak the protocol) is watched for its exit only. A hung sim ends the run.
+killed with SIGKILL, and then restarted like a crashed one, as is a stage that sent none within
+`RunOptions.startup_timeout_s` of its start; a swapped command that never sends one (it does not speak
+the protocol) is watched for its exit only. A hung sim ends the run.
 
 Every child gets SIGTERM when the supervisor dies, however it dies (Linux ``PR_SET_PDEATHSIG``): no
 stage outlives a `cvxnav run` killed with SIGKILL, and the sim, stopping, writes its run file as
