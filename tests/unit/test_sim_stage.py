@@ -152,11 +152,17 @@ def test_an_unanswered_scan_counts_in_the_latency_until_the_next_answer():
     assert sim.result().latency_ms.max == pytest.approx(sim.config.answer_timeout_s * 1e3)
 
 
-def test_a_run_stopped_before_its_outcome_is_interrupted():
-    sim = SimStage.from_scenario(SCENARIO)
-    drive(sim, ticks=30)
-    sim.stop(now_s=0.0)
-    assert sim.result().status == "interrupted" and sim.result().format == "cvxnav.run/2"
+def test_a_run_stopped_before_its_outcome_is_interrupted_and_its_unanswered_scan_counts_until_the_stop():
+    clock = [0.0]
+    sim = SimStage(scenario=SCENARIO, config=SimConfig(), latency_clock=lambda: clock[0])
+    bus, now_s = drive(sim, ticks=30)
+    _send_until_a_scan(sim, bus, now_s)  # lost on the way: never answered
+    clock[0] += 7.5  # the stall, then the stop
+    sim.stop(now_s=now_s)
+    clock[0] += 100.0  # the result, read later, still ends at the stop
+    result = sim.result()
+    assert result.status == "interrupted" and result.format == "cvxnav.run/2"
+    assert result.latency_ms.max == pytest.approx(7.5e3)
 
 
 def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():
