@@ -54,7 +54,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
     from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
-    _output_path(args.out, flag="--out")
+    _output_path(args.out, flag="--out", scenario=args.scenario)
     scenario = _load(args.scenario)
     if args.name == ROS2.name:
         _join_ros_graph(args)
@@ -76,14 +76,17 @@ def _cmd_service(args: argparse.Namespace) -> int:
         raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
 
 
-def _output_path(path: Path | None, *, flag: str) -> None:
-    """Refuse an output file whose folder does not exist (or that is a folder) before anything runs."""
+def _output_path(path: Path | None, *, flag: str, scenario: Path | None = None) -> None:
+    """Refuse an output file whose folder does not exist, that is a folder, or that is the `scenario` it
+    would overwrite (a run removes a stale output as it starts), before anything runs."""
     if path is None:
         return
     if path.is_dir():
         raise CliError(f"{flag} {path}: is a folder, not a file")
     if not path.parent.is_dir():
         raise CliError(f"{flag} {path}: folder {path.parent} does not exist")
+    if scenario is not None and path.exists() and path.samefile(scenario):
+        raise CliError(f"{flag} {path}: is the scenario file")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -95,7 +98,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # kill, systemd and docker stop: like Ctrl-C
     for path, flag in ((args.out, "--out"), (args.record, "--record"), (args.record_messages, "--record-messages")):
-        _output_path(path, flag=flag)
+        _output_path(path, flag=flag, scenario=args.scenario)
     scenario = _load(args.scenario)
     robot = None
     if args.ros2:

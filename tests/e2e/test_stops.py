@@ -25,6 +25,7 @@ from cvxnav.service import EXIT_WORKER_BUSY
 from cvxnav.supervisor import free_ports
 from schemas.files import RUN_FORMAT, RunFile
 from schemas.messages import ClusterMsg, Clusters, Header, RobotState, decode
+from schemas.scenario import bundled_scenario, load_scenario
 from schemas.wiring import default_prefix, key
 from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
@@ -146,3 +147,14 @@ def test_an_out_file_in_a_missing_folder_is_refused_before_anything_starts(tmp_p
     assert proc.returncode == 2
     assert proc.stderr.splitlines() == [f"cvxnav: error: --out {out}: folder {out.parent} does not exist"]
     assert not list(own_tmpdir.iterdir())  # no run folder: no process was started
+
+
+def test_an_out_file_that_is_the_scenario_is_refused_before_anything_starts(tmp_path, own_tmpdir):
+    scenario = tmp_path / "field.json"
+    scenario.write_text(bundled_scenario().model_dump_json())
+    proc = subprocess.run([sys.executable, "-m", "cvxnav", "run", "--quiet", "field.json", "--out", "./field.json"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=WAIT_S)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == ["cvxnav: error: --out field.json: is the scenario file"]
+    assert load_scenario(scenario) == bundled_scenario()  # untouched
+    assert not list(own_tmpdir.iterdir())
