@@ -98,12 +98,15 @@ def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.fixture(scope="module", params=[signal.SIGKILL, signal.SIGSTOP], ids=["SIGKILL", "SIGSTOP"])
-def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, list[Kill], signal.Signals]:
+def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, list[Kill], signal.Signals,
+                                                   Path]:
     """The paper scenario with each pipeline stage SIGKILLed (or SIGSTOPped) once while the car drives."""
     fault = request.param
     cwd = tmp_path_factory.mktemp(fault.name)
-    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json"], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    (cwd / "tmp").mkdir()  # the run's temporary folder goes here, and is kept (--keep-logs)
+    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json", "--keep-logs"],
+                            cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, TMPDIR=str(cwd / "tmp")))
     kills: list[Kill] = []
     try:
         children = wait_for(lambda: (found := stage_pids(proc.pid)) and "sim" in found and found,
@@ -148,11 +151,11 @@ def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, 
     for kill in kills:  # for docs/faults.md
         print(f"{fault.name} {kill.stage}: replaced after {kill.replaced_after_s:.2f} s, token back after "
               f"{kill.back_after_s:.2f} s (sim {kill.killed_s:.1f} -> {kill.back_s:.1f} s)")
-    return completed, RunFile.read(cwd / "run.json"), kills, fault
+    return completed, RunFile.read(cwd / "run.json"), kills, fault, cwd / "tmp"
 
 
 def test_every_faulted_stage_is_replaced_and_the_run_still_reaches_every_goal(killed_run):
-    proc, run, kills, fault = killed_run
+    proc, run, kills, fault, tmp = killed_run
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert run.status == "reached" and run.goals_reached == len(PAPER.goals)
     assert run.min_clearance >= 0.5 * PAPER.robot.safety_distance
@@ -165,10 +168,14 @@ def test_every_faulted_stage_is_replaced_and_the_run_still_reaches_every_goal(ki
     assert "stage restarts 4" in proc.stdout
     # Nothing is left behind: neither the stopped processes nor any other of the run.
     assert not [pid for kill in kills for pid in (kill.old_pid, kill.new_pid) if alive(pid)]
+    # A run that reached its goals keeps its folder only when asked: here, with every restarted stage's log.
+    (kept,) = tmp.iterdir()
+    assert f"stage logs kept in {kept}" in proc.stderr
+    assert {f"{stage}.1.log" for stage in PIPELINE} <= {path.name for path in kept.iterdir()}
 
 
 def test_the_car_brakes_to_a_stop_and_waits_while_a_stage_is_down(killed_run):
-    _, run, kills, _ = killed_run
+    _, run, kills, _, _ = killed_run
     t, v = speeds(run)
     decel = VehicleLimits.from_scenario(PAPER).max_decel_mps2
     for kill in kills:
