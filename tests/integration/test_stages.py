@@ -270,3 +270,32 @@ def test_smoother_never_publishes_a_curve_that_fails_verification():
         time.sleep(0.2)
         assert harness.outputs.try_recv() is None
         assert isinstance(harness.answer(), SmoothPath)
+
+
+def test_an_answer_past_its_deadline_is_published_and_its_ok_status_says_so():
+    """A planner whose budget every answer overruns still publishes its (verified) answer; the shell puts
+    the core's notice on the ok status of that input, so a watcher sees why it came late."""
+    from dataclasses import replace
+
+    from services.planner.stage import PlannerConfig
+
+    config = replace(PlannerConfig.from_scenario(SCENARIO), budget_s=1e-9)
+    case = Case("planner", lambda: PlannerStage(config=config), CASES["planner"].inputs, RawPath)
+    with running(case) as harness:
+        harness.drain()
+        answer = harness.answer()
+        assert answer.status == "ok" and len(answer.points) >= 2
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:
+            sample = harness.statuses.try_recv()
+            if sample is None:
+                time.sleep(0.005)
+                continue
+            status = decode(StageStatus, sample.payload.to_bytes(), encoding=str(sample.encoding))
+            if status.input_stamp_s == pytest.approx(state(harness.next_seq).header.stamp_s) and \
+                    status.input_key == key(harness.prefix, "ellipsoids"):
+                break
+        else:
+            pytest.fail("no status for the ellipsoids")
+        assert status.state == "ok"
+        assert status.reason.startswith("deadline: answered in") and status.reason.endswith("over the 0 ms budget")
