@@ -49,6 +49,7 @@ from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
 from pydantic import BaseModel
@@ -83,7 +84,9 @@ from services.contract import (
 from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
-from services.shell.ros2 import BridgePorts
+
+if TYPE_CHECKING:
+    from services.shell.ros2 import BridgePorts
 
 logger = logging.getLogger(__name__)
 
@@ -467,6 +470,8 @@ def run_stage(
         if spec.ros2:  # a source: its ROS inputs join the one queue
             if not isinstance(core, Bridging):
                 raise TypeError(f"stage {stage} is a ROS 2 node, but its core {type(core).__name__} does not bridge")
+            from services.shell.ros2 import BridgePorts  # the bridge's alone: the other stages start without it
+
             shell.ros = BridgePorts(session, domain_id=core.domain_id, namespace=core.namespace,
                                     deliver=lambda port, sample: queue((_ROS + port, sample)))
             declarations.callback(shell.ros.close)
