@@ -44,7 +44,7 @@ class EllipsoidsConfig:
     max_points: int = MAX_SENSED_POINTS  # over all clusters of one message
     tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its points
     max_pieces: int = 32  # ellipses per cluster and tile at most
-    tile_m: float = 2.0  # a cluster is covered tile by tile of this fixed grid: new points refit their tiles only
+    tile_m: float = 4.0  # a cluster is covered tile by tile of this fixed grid: new points refit their tiles only
     cache_size: int = 4096  # clusters' and tiles' covers remembered
 
     @property
