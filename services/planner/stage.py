@@ -14,6 +14,11 @@ within a turning radius of it given up down to the run's hard floor (`relieved_s
 boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
 tracks (`sim.core`): the planner plans forward motion only.
 
+With a budget (`PlannerConfig.budget_s`, a live run's sensor period) a replan that overruns it stops
+before its next attempt: it publishes what verified, or `no_path` with the deadline's reason (never an
+unverified plan), goes on from that attempt with the next scan, and says so on the status key (a
+``Notice``). A lockstep run has no budget: the sim waits for the answer.
+
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
 replaces the state or ellipsoids the planner holds. New ``Goals`` (a robot's /goal_pose, from the ROS
