@@ -30,8 +30,9 @@ from schemas.messages import ClusterMsg, Clusters, Scan
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header
+from services.geometry import PointMemory
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
-from services.sensing.core import LinkedClusters, PointMemory
+from services.sensing.core import LinkedClusters
 
 RANGE_SLACK = 1.1  # a hit may be measured this factor beyond the sensor's range (noise)
 
@@ -63,7 +64,7 @@ class SensingStage:
         self.memory = PointMemory(voxel_m=config.voxel_m, max_points=config.max_points)
         # The memory's clusters, kept as points are added; rebuilt when the memory drops some for room.
         self._linked = LinkedClusters(link_m=config.link_m)
-        self._dropped = 0  # `memory.dropped` as `_linked` last saw it
+        self._forgotten = 0  # `memory.forgotten` as `_linked` last saw it
         self._messages: dict[int, ClusterMsg] = {}  # by root: each cluster's message, its id as last numbered
         # Reused while a scan adds no voxel (a still robot, a re-sent scan): the clusters cannot change.
         self._clusters: list[ClusterMsg] | None = None
@@ -102,12 +103,13 @@ class SensingStage:
             raise StageInputError(f"sensing does not handle {topic!r}")
         if message.header.frame_id != "map":
             raise StageInputError(f"scan points must be in the map frame, got frame_id={message.header.frame_id!r}")
-        if self.memory.add(self._checked_hits(message)) or self._clusters is None:
+        added = self.memory.remember(self._checked_hits(message))
+        if len(added) or self._clusters is None:
             self._state = None
-            if self.memory.dropped != self._dropped:
+            if self.memory.forgotten != self._forgotten:
                 self._relink()
             else:
-                self._linked.add(self.memory.added)
+                self._linked.add(added)
             self._clusters = self._clustered()
         out = Clusters(
             header=answer_header(scan_header=message.header, seq=self._seq),
@@ -121,7 +123,7 @@ class SensingStage:
         """Cluster the whole memory afresh (at start, on restore, and when it dropped points for room)."""
         self._linked = LinkedClusters(link_m=self.config.link_m)
         self._linked.add(self.memory.points())
-        self._dropped = self.memory.dropped
+        self._forgotten = self.memory.forgotten
         self._messages = {}
 
     def _clustered(self) -> list[ClusterMsg]:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from services.sensing.core import PointMemory, cluster_points
+from services.geometry import PointMemory
+from services.sensing.core import cluster_points
 from sim.sensor import RangeSensor
 
 
@@ -109,6 +110,6 @@ def test_the_stage_keeps_the_clusters_a_fresh_clustering_of_its_memory_gives():
         assert [c.cluster_id for c in out.clusters] == list(range(len(expected)))
         assert [[list(p) for p in c.points] for c in out.clusters] == expected
         assert sum(len(c.points) for c in out.clusters) == len(stage.memory)
-        if dropped_at is None and stage.memory.dropped:
+        if dropped_at is None and stage.memory.forgotten:
             dropped_at = seq
     assert dropped_at is not None and dropped_at < 39  # the rebuild after a drop was exercised, and growth after it
