@@ -63,6 +63,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
                        seed=args.seed),
         MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
         ROS2.name: dict(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace)),
+        "planner": dict(deadline=True) if args.deadline else {},  # a swapped planner's factory takes the scenario alone
     }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
@@ -440,6 +441,10 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument("--stall-limit-s", type=_positive_float, default=STALL_LIMIT_S, metavar="S",
                          help="under a watchdog (NOTIFY_SOCKET, WATCHDOG_USEC: systemd or cvxnav run), stop the "
                               f"keep-alives when one input takes longer than this (default {STALL_LIMIT_S:g})")
+    planner = service.add_argument_group("planner")
+    planner.add_argument("--deadline", action="store_true",
+                         help="planner: answer each scan within the sensor's period, with the best verified path at "
+                              "hand (live runs; lockstep runs wait for the best)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")

@@ -319,8 +319,11 @@ class Supervisor:
             cmd += ["--scenario", scenario_arg]
         if name in PIPELINE:
             cmd += ["--state-dir", state_dir]
-        if choice is not None and choice.entry_point is not None and choice.entry_point != STAGES[name].factory:
+        swapped = choice is not None and choice.entry_point not in (None, STAGES[name].factory)
+        if swapped:
             cmd += ["--entry", choice.entry_point]
+        if name == "planner" and not swapped and (self.options.realtime or self.options.robot is not None):
+            cmd += ["--deadline"]  # the world does not wait for the answer: each scan's within its period
         if name == MONITOR.name:
             cmd += self._monitor_args()
         if name == SIM.name:

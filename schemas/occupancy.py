@@ -18,7 +18,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
@@ -182,6 +181,8 @@ class OccupancyGrid:
         """
         rows = rows or slice(-1, self.shape[0] + 1)
         cols = cols or slice(-1, self.shape[1] + 1)
+        from scipy import ndimage  # here, not at the top: loading a scenario must not cost its import (~0.4 s)
+
         blocked = self.padded_blocked(slice(rows.start - 1, rows.stop + 1), slice(cols.start - 1, cols.stop + 1))
         touches_free = ndimage.maximum_filter(~blocked, size=3, mode="constant", cval=False)  # 8 neighbours
         j, i = np.nonzero((blocked & touches_free)[1:-1, 1:-1])
@@ -244,6 +245,8 @@ class OccupancyGrid:
         (0 on blocked cells), exact wherever that distance is at most `halo` cells: the distance transform
         (scipy.ndimage) of the window widened by `halo` on every side.
         """
+        from scipy import ndimage  # as in `border_cells`
+
         blocked = self.padded_blocked(slice(rows.start - halo, rows.stop + halo),
                                       slice(cols.start - halo, cols.stop + halo))
         distance = ndimage.distance_transform_edt(~blocked)

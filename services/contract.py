@@ -30,6 +30,14 @@ class Refusal:
 
 
 @dataclass(frozen=True)
+class Notice:
+    """Why an answer is not the best the core could give (a deadline cut its search short), reported by the
+    shell as the reason on the stage's ``ok`` status for the input; the answer itself is published as usual."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
 class Raw:
     """Bytes for an output port outside the wiring table's key space (a ROS 2 topic's CDR), encoded by the
     core; the shell publishes them as they are."""
@@ -37,9 +45,9 @@ class Raw:
     payload: bytes
 
 
-# By topic: a message to publish on an output topic, a Refusal of an input on an input topic, or Raw
-# bytes for a bridging core's output port.
-Outputs = list[tuple[str, BaseModel | Refusal | Raw]]
+# By topic: a message to publish on an output topic, a Refusal of an input on an input topic, Raw
+# bytes for a bridging core's output port, or a Notice on the answer published on an output topic.
+Outputs = list[tuple[str, BaseModel | Refusal | Raw | Notice]]
 
 
 class StageInputError(ValueError):

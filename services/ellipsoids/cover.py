@@ -11,10 +11,9 @@ the obstacle whatever the stopping point.
 
 from __future__ import annotations
 
-import functools
 import heapq
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,7 +23,8 @@ from scipy.spatial import cKDTree
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
 from services.geometry import Ellipse, FloatArray, as_complex, counter_clockwise, ring_next, signed_area
 
-__all__ = ["Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon", "point_cover"]
+__all__ = ["Cell", "Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon",
+           "tiled_cover", "tiles"]
 
 Fit = Callable[[FloatArray], Ellipse]
 _ISOTROPIC_RATIO = 1.01  # second moments closer than this: the principal axis is ill-defined
@@ -206,11 +206,14 @@ def _split_points(points: FloatArray) -> list[FloatArray]:
 # --------------------------------------------------------------------------- covers
 
 
+Cell = tuple[float, float, float, float]  # x0, y0, x1, y1: a piece of a tiled cover holds the points in [x0, x1) × [y0, y1)
+
+
 @dataclass(eq=False)
 class Piece:
     """A node of a cover's split tree: a piece of the obstacle, its ellipse and how far that sticks out.
 
-    A point cover's tree is what the next cover of the same cloud may reuse (`point_cover`): there
+    A tiled cover's tree is what the next cover of the same tile may reuse (`tiled_cover`): there
     `support` holds the piece's points that carry the fit's dual weight (None when not known: a
     degenerate piece, or another fit) and `worst` a region sample at which `excess_m` is attained.
     """
@@ -221,11 +224,7 @@ class Piece:
     support: FloatArray | None = None
     worst: FloatArray | None = None
     children: list[Piece] = field(default_factory=list)
-
-    @functools.cached_property
-    def box(self) -> FloatArray:
-        """Bounding box: rows low, high."""
-        return np.array([self.points.min(axis=0), self.points.max(axis=0)])
+    cell: Cell | None = None  # a tiled cover's piece: the rectangle its points are the cloud's points in
 
 
 @dataclass(frozen=True)
@@ -235,35 +234,34 @@ class Cover:
 
 
 def _cover(
-    first: FloatArray,
+    root: Piece,
     *,
-    make: Callable[[FloatArray, Piece | None], Piece],
-    split: Callable[[FloatArray], list[FloatArray]],
+    split: Callable[[Piece], list[Piece]],
     tolerance_m: float,
     max_pieces: int,
 ) -> Cover:
     """Split the worst piece while its excess exceeds the tolerance and the piece budget allows.
 
-    `make(points, parent)` fits a piece and measures its excess.
+    `split(piece)` returns the piece's children, fitted, with their excess measured ([] when it cannot
+    be split further).
     """
     if tolerance_m <= 0.0 or max_pieces < 1:
         raise ValueError("tolerance_m must be positive and max_pieces at least 1")
     order = itertools.count()
     done: list[Piece] = []
-    root = make(first, None)
     heap = [(-root.excess_m, next(order), root)]
     while heap:
         worst, _, piece = heap[0]
         if -worst <= tolerance_m or len(heap) + len(done) >= max_pieces:
             break
         heapq.heappop(heap)
-        children = split(piece.points)
+        children = split(piece)
         if len(children) < 2:  # cannot be split further (e.g. duplicated points): keep it as is
             done.append(piece)
             continue
+        piece.children = children
         for child in children:
-            piece.children.append(make(child, piece))
-            heapq.heappush(heap, (-piece.children[-1].excess_m, next(order), piece.children[-1]))
+            heapq.heappush(heap, (-child.excess_m, next(order), child))
     return Cover(root=root, pieces=done + [item[2] for item in sorted(heap, key=lambda item: item[1])])
 
 
@@ -289,7 +287,8 @@ def cover_polygon(
         e = fit(piece)
         return Piece(points=piece, ellipse=e, excess_m=solid.excess(e, tolerance_m=tolerance_m))
 
-    cover = _cover(polygon, make=make, split=_split_polygon, tolerance_m=tolerance_m, max_pieces=max_pieces)
+    cover = _cover(make(polygon, None), split=lambda piece: [make(half, piece) for half in _split_polygon(piece.points)],
+                   tolerance_m=tolerance_m, max_pieces=max_pieces)
     return [piece.ellipse for piece in cover.pieces]
 
 
@@ -304,65 +303,93 @@ def cover_points(
     line through their mean perpendicular to their principal axis; every input point ends up inside
     the ellipse of its piece. `fit` may be `mvee` to use the solver.
     """
-    fit_support = mvee_fast_support if fit is mvee_fast else lambda piece: (fit(piece), None)
-    cover = _point_cover(points, fit=fit_support, previous=(), tolerance_m=tolerance_m, max_pieces=max_pieces)
-    return [piece.ellipse for piece in cover.pieces]
-
-
-def point_cover(
-    points: ArrayLike, *, previous: Sequence[Piece] = (), tolerance_m: float = 0.1, max_pieces: int = 64
-) -> Cover:
-    """`cover_points`' cover with its split tree, reusing the fits of `previous` trees where they are exact.
-
-    A sensed cloud grows a few points per scan. The MVEE of a set is
-    fixed by its support (the points carrying dual weight): if a new piece holds every support point
-    of an earlier piece and lies inside its ellipse E, its MVEE is E (E contains it; any ellipse that
-    contains it contains the support, whose MVEE is E; the MVEE is unique). A piece is compared with
-    the earlier pieces at its place in the tree whose bounding boxes meet its own: the roots of
-    `previous` for the root, the children of those its parent was compared with for a child. The
-    excess of a reused ellipse is kept when no earlier point is lost and every added point is at
-    least the excess away from the sample where it was attained (adding points lowers the distance
-    nowhere else above it), and measured afresh otherwise. Splits are computed from the points as
-    always, so the cover is the one `cover_points` gives, up to the fit's own tolerance. (The split
-    lines run through the pieces' means, so points added at one end move them all: a point that
-    crosses one is a support point of the piece it leaves, and both pieces are refitted.)
-    """
-    return _point_cover(points, fit=mvee_fast_support, previous=previous, tolerance_m=tolerance_m,
-                        max_pieces=max_pieces)
-
-
-def _point_cover(
-    points: ArrayLike,
-    *,
-    fit: Callable[[FloatArray], tuple[Ellipse, IntArray | None]],
-    previous: Sequence[Piece],
-    tolerance_m: float,
-    max_pieces: int,
-) -> Cover:
     z = np.atleast_2d(np.asarray(points, dtype=float))
     if z.ndim != 2 or z.shape[1] != 2 or len(z) == 0:
         raise FitError(f"points must be a non-empty (n, 2) array, got shape {z.shape}")
-    compared: dict[int, list[Piece]] = {}  # id(piece) -> the earlier pieces it was compared with
+    fit_support = mvee_fast_support if fit is mvee_fast else lambda piece: (fit(piece), None)
+    cover = _cover(_fitted(z, fit=fit_support, tolerance_m=tolerance_m),
+                   split=lambda piece: [_fitted(half, fit=fit_support, tolerance_m=tolerance_m)
+                                        for half in _split_points(piece.points)],
+                   tolerance_m=tolerance_m, max_pieces=max_pieces)
+    return [piece.ellipse for piece in cover.pieces]
 
-    def make(piece: FloatArray, parent: Piece | None) -> Piece:
-        earlier = previous if parent is None else [child for e in compared[id(parent)] for child in e.children]
-        box = np.array([piece.min(axis=0), piece.max(axis=0)])
-        earlier = [e for e in earlier if np.all(e.box[0] <= box[1]) and np.all(box[0] <= e.box[1])]
-        made = next((p for e in earlier if (p := _reused(e, piece, tolerance_m=tolerance_m)) is not None), None)
+
+def _fitted(points: FloatArray, *, fit: Callable[[FloatArray], tuple[Ellipse, IntArray | None]],
+            tolerance_m: float) -> Piece:
+    """A piece of `points` with a fresh fit and its excess measured."""
+    ellipse, support = fit(points)
+    excess, worst = _excess_over_points(ellipse, cKDTree(points), tolerance_m=tolerance_m)
+    return Piece(points=points, ellipse=ellipse, excess_m=excess, support=None if support is None else points[support],
+                 worst=worst)
+
+
+def tiles(points: ArrayLike, *, tile_m: float) -> list[tuple[Cell, FloatArray]]:
+    """The cloud cut by the fixed grid of `tile_m` squares: each tile's cell and its points, in the cloud's
+    order; tiles in row-major order of their cells."""
+    z = np.atleast_2d(np.asarray(points, dtype=float))
+    index = np.floor(z / tile_m).astype(np.int64)
+    index -= index.min(axis=0)
+    flat = index[:, 0] * (int(index[:, 1].max()) + 1) + index[:, 1]  # row-major, one integer per tile
+    order = np.argsort(flat, kind="stable")
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(flat[order])) + 1])
+    corners = np.floor(z[order[starts]] / tile_m) * tile_m
+    return [((x, y, x + tile_m, y + tile_m), z[rows])
+            for (x, y), rows in zip(corners.tolist(), np.split(order, starts[1:]))]
+
+
+def tiled_cover(
+    points: ArrayLike, *, cell: Cell, previous: Mapping[Cell, Sequence[Piece]] | None = None, tolerance_m: float = 0.1,
+    max_pieces: int = 64,
+) -> Cover:
+    """`cover_points` of one tile's points with pieces that stay put: a piece is split across the middle
+    of its cell (the longer side), never through its points' mean, so a cell's points are those of the
+    cloud inside a fixed rectangle, and a point added to the cloud changes only the cells that contain
+    it — the chain from the tile down to one leaf. Every other cell has the same points as before and
+    takes its fit from `previous` (by cell) as it is; a changed cell's earlier fit is kept where it is
+    still the MVEE (`_reused`), and fitted afresh otherwise.
+
+    A half that holds no point is skipped (the cell shrinks to the other half) down to a side of a
+    quarter tolerance, where a piece is kept as it is: points that close are within tolerance of its fit.
+    """
+    z = np.atleast_2d(np.asarray(points, dtype=float))
+    if z.ndim != 2 or z.shape[1] != 2 or len(z) == 0:
+        raise FitError(f"points must be a non-empty (n, 2) array, got shape {z.shape}")
+    min_side_m = 0.25 * tolerance_m
+    earlier = previous or {}
+
+    def make(piece: FloatArray, at: Cell) -> Piece:
+        made = next((p for e in earlier.get(at, ()) if (p := _reused(e, piece, tolerance_m=tolerance_m)) is not None),
+                    None)
         if made is None:
-            ellipse, support = fit(piece)
-            excess, worst = _excess_over_points(ellipse, cKDTree(piece), tolerance_m=tolerance_m)
-            made = Piece(points=piece, ellipse=ellipse, excess_m=excess,
-                         support=None if support is None else piece[support], worst=worst)
-        made.box = box
-        compared[id(made)] = earlier
+            made = _fitted(piece, fit=mvee_fast_support, tolerance_m=tolerance_m)
+        made.cell = at
         return made
 
-    return _cover(z, make=make, split=_split_points, tolerance_m=tolerance_m, max_pieces=max_pieces)
+    def split(piece: Piece) -> list[Piece]:
+        x0, y0, x1, y1 = piece.cell
+        while max(x1 - x0, y1 - y0) > min_side_m:
+            axis, low, high = (0, x0, x1) if x1 - x0 >= y1 - y0 else (1, y0, y1)
+            middle = 0.5 * (low + high)
+            below = piece.points[:, axis] < middle
+            halves = ((x0, y0, middle, y1), (middle, y0, x1, y1)) if axis == 0 else ((x0, y0, x1, middle), (x0, middle, x1, y1))
+            if np.all(below) or not np.any(below):
+                x0, y0, x1, y1 = halves[0] if np.all(below) else halves[1]
+                continue
+            return [make(piece.points[below], halves[0]), make(piece.points[~below], halves[1])]
+        return []
+
+    return _cover(make(z, cell), split=split, tolerance_m=tolerance_m, max_pieces=max_pieces)
 
 
 def _reused(earlier: Piece, points: FloatArray, *, tolerance_m: float) -> Piece | None:
-    """A piece of `points` with `earlier`'s ellipse, if that is their MVEE (see `point_cover`); else None.
+    """A piece of `points` with `earlier`'s ellipse, if that is their MVEE; else None.
+
+    The MVEE of a set is fixed by its support (the points carrying dual weight): if a new piece holds
+    every support point of an earlier piece and lies inside its ellipse E, its MVEE is E (E contains
+    it; any ellipse that contains it contains the support, whose MVEE is E; the MVEE is unique). The
+    excess of a reused ellipse is kept when no earlier point is lost and every added point is at least
+    the excess away from the sample where it was attained (adding points lowers the distance nowhere
+    else above it), and measured afresh otherwise.
 
     The support must also be no thinner than the fit's degenerate width: the MVEE E of a support S
     has E/2 ⊆ hull(S) about its centre (John), so a set holding S is at least E's minor semi-axis

@@ -1,14 +1,16 @@
 """The ellipsoid stage core: Clusters → Ellipsoids (fit, split, group, grow).
 
-Each cluster is covered by a few tight ellipses (`cover_points`), the ellipses whose gap is
-narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every ellipse is
-grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
+Each cluster is covered by a few tight ellipses, tile by tile of a fixed grid (`tiles`, `tiled_cover`:
+pieces split across the middle of fixed cells, so they stay put as points are added), the ellipses
+whose gap is narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every
+ellipse is grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
 
-Fits, and the grown ellipses, are cached by cluster content: the sensing stage sends unchanged
-clusters byte-identical, and most of the map is unchanged from one scan to the next, so only new or
-grown clusters are refitted. A grown cluster's cover reuses the previous message's split trees where
-that is exact (`point_cover`), and an ellipse kept that way keeps its grown ellipse and its gap
-samples too.
+Covers, and the grown ellipses, are cached by content, a cluster's and each of its tiles': the sensing
+stage sends unchanged clusters byte-identical, and a cluster that grew has new points in a few tiles
+only, so only those tiles are covered again, and within them only the cells that gained a point are
+refitted (an earlier fit is kept where it is still exact, `tiled_cover`); an ellipse kept that way
+keeps its grown ellipse and its gap samples too. What that costs: a cluster cut by tile edges has an
+ellipse or so more per tile it spans.
 
 A Clusters message holds at most as many points as the sensing stage remembers, all within the
 sensor's reach of the map (``services.limits``). Degenerate clusters (one point, all points equal,
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +31,7 @@ from schemas.messages import Clusters, Ellipsoids
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError
 from services.convert import answer_header, ellipse_to_msg
-from services.ellipsoids.cover import Piece, point_cover
+from services.ellipsoids.cover import Cell, Piece, tiled_cover, tiles
 from services.ellipsoids.gap import gap_samples, group_ellipses
 from services.geometry import Ellipse
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
@@ -40,8 +43,9 @@ class EllipsoidsConfig:
     reach: Reach
     max_points: int = MAX_SENSED_POINTS  # over all clusters of one message
     tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its points
-    max_pieces: int = 32  # ellipses per cluster at most
-    cache_size: int = 1024  # clusters whose fits are remembered
+    max_pieces: int = 32  # ellipses per cluster and tile at most
+    tile_m: float = 4.0  # a cluster is covered tile by tile of this fixed grid: new points refit their tiles only
+    cache_size: int = 4096  # clusters' and tiles' covers remembered
 
     @property
     def min_gap_m(self) -> float:
@@ -62,12 +66,15 @@ class _Fitted:
     samples: np.ndarray
 
 
+_Cover = tuple[list[Piece], list[_Fitted]]  # a cover's split trees and its ellipses, fitted
+
+
 class EllipsoidsStage:
     def __init__(self, *, config: EllipsoidsConfig) -> None:
         self.config = config
-        self._fits: OrderedDict[bytes, list[_Fitted]] = OrderedDict()
-        # The previous message's clusters: their split trees (by content) and their ellipses (by identity).
-        self._trees: dict[bytes, Piece] = {}
+        self._fits: OrderedDict[bytes, _Cover] = OrderedDict()  # a cluster's or a tile's cover, by content
+        # The previous message's covers: their pieces (by cell) and their ellipses (by identity).
+        self._cells: dict[Cell, list[Piece]] = {}
         self._fitted: dict[int, _Fitted] = {}
         self._seq = 0
 
@@ -75,22 +82,40 @@ class EllipsoidsStage:
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsStage:
         return cls(config=EllipsoidsConfig.from_scenario(scenario))
 
-    def _cover(self, points: np.ndarray, *, trees: dict[bytes, Piece]) -> list[_Fitted]:
-        """The cluster's cover (cached by the points' content); its split tree goes into `trees`."""
+    def _cover(self, points: np.ndarray, *, cells: dict[Cell, list[Piece]]) -> list[_Fitted]:
+        """A cluster's cover, tile by tile, each cached by its points' content (the cluster's too: most
+        clusters are unchanged from one message to the next); its split trees go into `cells`."""
+        roots, fitted = self._cached(points, lambda: self._tiled(points))
+        stack = list(roots)
+        while stack:
+            node = stack.pop()
+            cells.setdefault(node.cell, []).append(node)
+            stack.extend(node.children)
+        return fitted
+
+    def _tiled(self, points: np.ndarray) -> tuple[list[Piece], list[_Fitted]]:
+        roots: list[Piece] = []
+        fitted: list[_Fitted] = []
+        for cell, tile_points in tiles(points, tile_m=self.config.tile_m):
+            tile_roots, tile_fitted = self._cached(tile_points, lambda: self._tile(tile_points, cell=cell))
+            roots.extend(tile_roots)
+            fitted.extend(tile_fitted)
+        return roots, fitted
+
+    def _tile(self, points: np.ndarray, *, cell: Cell) -> tuple[list[Piece], list[_Fitted]]:
+        cover = tiled_cover(points, cell=cell, previous=self._cells, tolerance_m=self.config.tolerance_m,
+                            max_pieces=self.config.max_pieces)
+        return [cover.root], [self._fit(piece.ellipse) for piece in cover.pieces]
+
+    def _cached(self, points: np.ndarray, make: Callable[[], _Cover]) -> _Cover:
         digest = hashlib.blake2b(points.tobytes(), digest_size=16).digest()
         if digest in self._fits:
             self._fits.move_to_end(digest)
-            if digest in self._trees:
-                trees[digest] = self._trees[digest]
             return self._fits[digest]
-        cover = point_cover(points, previous=list(self._trees.values()), tolerance_m=self.config.tolerance_m,
-                            max_pieces=self.config.max_pieces)
-        trees[digest] = cover.root
-        fitted = [self._fit(piece.ellipse) for piece in cover.pieces]
-        self._fits[digest] = fitted
+        self._fits[digest] = made = make()
         while len(self._fits) > self.config.cache_size:
             self._fits.popitem(last=False)
-        return fitted
+        return made
 
     def _fit(self, ellipse: Ellipse) -> _Fitted:
         known = self._fitted.get(id(ellipse))
@@ -112,12 +137,12 @@ class EllipsoidsStage:
             clouds.append((cluster.cluster_id, points))
         fitted: list[_Fitted] = []
         cluster_ids: list[int] = []
-        trees: dict[bytes, Piece] = {}
+        cells: dict[Cell, list[Piece]] = {}
         for cluster_id, points in clouds:
-            cover = self._cover(points, trees=trees)
+            cover = self._cover(points, cells=cells)
             fitted.extend(cover)
             cluster_ids.extend([cluster_id] * len(cover))
-        self._trees = trees
+        self._cells = cells
         self._fitted = {id(f.ellipse): f for f in fitted}
         # A cluster is one obstacle, so its pieces share a group from the start (the default sensing
         # links points closer than r, so adjacent pieces are closer than the passage 2 r anyway); only

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
-from itertools import accumulate, chain
+from itertools import accumulate
 from typing import Literal
 
 import numpy as np
@@ -173,6 +173,7 @@ def plan_path(
     settings: RefineSettings = RefineSettings(),
     route_estimate_m: Sequence[float] | None = None,
     route_keep_to: KeepTo | None = None,
+    late: Callable[[], bool] = lambda: False,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
 
@@ -183,7 +184,8 @@ def plan_path(
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
     cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
-    tight to turn in — and refined once more against the true ellipses.
+    tight to turn in — and refined once more against the true ellipses. Once `late()` (a deadline has
+    passed), no further route is tried after one that refined clear.
     """
     start = np.asarray(start, dtype=float)
     goals = np.asarray(goals, dtype=float).reshape(-1, 2)
@@ -255,11 +257,26 @@ def plan_path(
         if refined.curvature_slack < best_slack:
             best_slack = refined.curvature_slack
             best = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
-        if refined.curvature_slack <= 1e-6:
+        if refined.curvature_slack <= 1e-6 or late():
             break
     if best is None:
         return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses")
     return best
+
+
+@dataclass(frozen=True)
+class Attempted:
+    """What `plan_within` found: the plan, its smoothed curve (as `plan_until_verified` returns them), and
+    the attempt to resume at when the deadline cut the ladder short (None: it was not cut)."""
+
+    plan: PathPlan
+    smoothed: Smoothed | None
+    resume_at: int | None = None
+
+
+def margin_ladder(settings: RefineSettings, repairs: tuple[tuple[float, float], ...]) -> list[RefineSettings]:
+    """The settings `plan_until_verified` tries in turn: `settings`, then each repair's margins."""
+    return [settings, *(replace(settings, level=level, curvature_factor=factor) for level, factor in repairs)]
 
 
 def plan_until_verified(
@@ -284,25 +301,47 @@ def plan_until_verified(
     loops one of them once verified (the car went another way there; all three still reached their goal).
     `timer(stage)` wraps the "optimize" and "smooth" steps, for callers that report stage timings.
     """
-    # Built as reached: a plan that verifies at once (the usual case) needs no repair settings.
-    attempts = chain([settings], (replace(settings, level=level, curvature_factor=factor) for level, factor in repairs))
-    fallback: tuple[PathPlan, Smoothed | None] | None = None
+    attempted = plan_within(smooth_fn=smooth_fn, ladder=margin_ladder(settings, repairs), timer=timer, **problem)
+    return attempted.plan, attempted.smoothed
+
+
+def plan_within(
+    *,
+    smooth_fn: Callable[[FloatArray], Smoothed],
+    ladder: list[RefineSettings],
+    timer: Callable[[str], AbstractContextManager] = nullcontext,
+    late: Callable[[], bool] = lambda: False,
+    first: int = 0,
+    **problem,
+) -> Attempted:
+    """`plan_until_verified` on the `ladder` of settings from attempt `first` on, cut short once `late()`.
+
+    A deadline is checked between attempts (a solve is not interrupted): once it has passed, the ladder
+    stops before its next attempt, and `resume_at` says which that was, so the next input can go on
+    from there instead of trying again what already failed. Within an attempt, `plan_path` stops
+    trying routes once one refined clear. Whatever is returned unverified is never published.
+    """
+    fallback: Attempted | None = None
     too_sharp: list[RefineSettings] = []  # attempts whose curve broke the curvature bound
-    for attempt in attempts:
+    for index in range(first, len(ladder)):
+        attempt = ladder[index]
         if any(attempt.level >= failed.level and attempt.curvature_factor <= failed.curvature_factor
                for failed in too_sharp):
             continue
+        if fallback is not None and late():
+            return replace(fallback, resume_at=index)
         with timer("optimize"):
-            plan = plan_path(**problem, settings=attempt)
+            plan = plan_path(**problem, settings=attempt, late=late)
         if plan.status != "ok":
-            fallback = fallback or (plan, None)
+            fallback = fallback or Attempted(plan, None)
             continue
         with timer("smooth"):
             smoothed = smooth_fn(plan.points)
         if smoothed.verification.ok:
-            return plan, smoothed
+            return Attempted(plan, smoothed)
         if smoothed.verification.max_curvature > problem["max_curvature"]:
             too_sharp.append(attempt)
-        fallback = (plan, smoothed)
-    assert fallback is not None  # attempts is never empty
+        fallback = Attempted(plan, smoothed)
+    if fallback is None:  # `first` was past the ladder's end
+        raise ValueError(f"no attempt from {first} on a ladder of {len(ladder)}")
     return fallback

@@ -14,6 +14,11 @@ within a turning radius of it given up down to the run's hard floor (`relieved_s
 boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
 tracks (`sim.core`): the planner plans forward motion only.
 
+With a budget (`PlannerConfig.budget_s`, a live run's sensor period) a replan that overruns it stops
+before its next attempt: it publishes what verified, or `no_path` with the deadline's reason (never an
+unverified plan), goes on from that attempt with the next scan, and says so on the status key (a
+``Notice``). A lockstep run has no budget: the sim waits for the answer.
+
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
 replaces the state or ellipsoids the planner holds. New ``Goals`` (a robot's /goal_pose, from the ROS
@@ -31,6 +36,8 @@ from __future__ import annotations
 
 import json
 import logging
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -39,11 +46,11 @@ from pydantic import BaseModel
 
 from schemas.messages import Ellipsoids, Goals, RawPath, RobotState
 from schemas.scenario import Scenario
-from services.contract import Outputs, StageInputError, StateError
+from services.contract import Notice, Outputs, StageInputError, StateError
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
 from services.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
 from services.limits import Reach
-from services.planner.core import PathPlan, goals_ahead, intersected, plan_until_verified
+from services.planner.core import PathPlan, goals_ahead, intersected, margin_ladder, plan_within
 from services.planner.refine import RefineSettings, SolverFailure, refine
 from services.smoother.core import Smoothed, smooth
 
@@ -57,6 +64,7 @@ _REPAIR_MIN_LEVEL = 0.5
 # A repair that has not met the curvature bound in this many solves gives way to the next margin or
 # to a replan: repairs that took more went on to fail verification.
 _REPAIR_ITERATIONS_UNMET = 4
+_LATE = "deadline: no verified path within the budget yet; the replan goes on with the next scan"
 _BOXED_IN = ("boxed in: every forward turn the car can make from here crosses an obstacle, even with the margin "
              "near it given up to the hard floor")
 
@@ -87,6 +95,9 @@ class PlannerConfig:
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
     repair_slack_m: float = 0.5  # a warm repair of the plan may lengthen it by this much (`_repair`)
     repair_rejoin_m: float = 3.0  # ... and re-optimises it this far past the last stretch it must move
+    # Seconds an answer may take (None: no deadline); past it a replan stops before its next attempt
+    # (`_replan`). Lockstep runs keep none: the sim waits for the answer, and their trajectories repeat.
+    budget_s: float | None = None
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> PlannerConfig:
@@ -204,7 +215,7 @@ def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
 
 
 class PlannerStage:
-    def __init__(self, *, config: PlannerConfig) -> None:
+    def __init__(self, *, config: PlannerConfig, clock: Callable[[], float] = time.perf_counter) -> None:
         self.config = config
         self.robot_state: RobotState | None = None  # the newest robot state
         self.pending: Ellipsoids | None = None  # ellipsoids waiting for the state of their scan
@@ -215,10 +226,17 @@ class PlannerStage:
         self.plan_id = 0
         self._seq = 0
         self._state: tuple[tuple[int, int], bytes] | None = None  # `state()` as of (plan_id, goal base)
+        self._clock = clock
+        # (goal base, attempt): where a replan the deadline cut short goes on (`_replan`), None when none was.
+        self._resume: tuple[int, int] | None = None
 
     @classmethod
-    def from_scenario(cls, scenario: Scenario) -> PlannerStage:
-        return cls(config=PlannerConfig.from_scenario(scenario))
+    def from_scenario(cls, scenario: Scenario, *, deadline: bool = False) -> PlannerStage:
+        """The planner of `scenario`; with `deadline`, each answer's budget is the sensor's period (a live run)."""
+        config = PlannerConfig.from_scenario(scenario)
+        if deadline:
+            config = replace(config, budget_s=1.0 / float(scenario.sensor.rate_hz))
+        return cls(config=config)
 
     def state(self) -> bytes:
         """The current plan, the goals reached when it was made and the plan counter, as JSON.
@@ -254,7 +272,7 @@ class PlannerStage:
             goals = np.asarray(message.goals, dtype=float).reshape(-1, 2)
             self.config.reach.check_goals(goals, what="goals")
             self.config = replace(self.config, goals=goals)
-            self.plan, self.plan_goal_base = None, 0
+            self.plan, self.plan_goal_base, self._resume = None, 0, None
             return []
         if isinstance(message, RobotState):
             self._check_state(message)
@@ -279,6 +297,17 @@ class PlannerStage:
         self.config.reach.check_pose(state.pose, what="state")
 
     def _plan(self, message: Ellipsoids, state: RobotState) -> Outputs:
+        started_s = self._clock()
+        budget_s = self.config.budget_s
+        late = (lambda: False) if budget_s is None else (lambda: self._clock() - started_s > budget_s)
+        outputs = self._answer(message, state, late=late)
+        if budget_s is not None and late():
+            over = (f"deadline: answered in {(self._clock() - started_s) * 1e3:.0f} ms, over the "
+                    f"{budget_s * 1e3:.0f} ms budget")
+            outputs.append(("raw_path", Notice(over if self._resume is None else f"{over}; {_LATE}")))
+        return outputs
+
+    def _answer(self, message: Ellipsoids, state: RobotState, *, late: Callable[[], bool]) -> Outputs:
         goal_base = state.goals_reached
         if goal_base >= len(self.config.goals):
             raise StageInputError("every goal is already reached")
@@ -311,9 +340,14 @@ class PlannerStage:
                 points, self.plan_margin = repaired
                 self.plan_id += 1
                 self.plan = points
-        if points is None:
-            plan, used, relief_used = self._replan(position=position, heading_rad=state.pose.theta_rad, goals=goals,
-                                                   ellipses=ellipses, relieved=relieved)
+        if points is not None:
+            self._resume = None
+        else:
+            resume = self._resume if self._resume is not None and self._resume[0] == goal_base else (goal_base, 0)
+            plan, used, relief_used, resume_at = self._replan(
+                position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=ellipses,
+                relieved=relieved, late=late, first=resume[1])
+            self._resume = None if resume_at is None else (goal_base, resume_at)
             self.plan_id += 1
             if plan.status == "ok":
                 self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relief_used
@@ -454,16 +488,18 @@ class PlannerStage:
 
     def _replan(
         self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
-        relieved: list[Ellipse] | None,
-    ) -> tuple[PathPlan, list[Ellipse], bool]:
-        """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones.
+        relieved: list[Ellipse] | None, late: Callable[[], bool], first: int,
+    ) -> tuple[PathPlan, list[Ellipse], bool, int | None]:
+        """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones;
+        and, when `late()` cut it short before anything verified, the attempt to resume at on the next input.
 
         The full margin first, re-optimised with the repairs' wider margins while the smoothed curve
         fails. A car that grown covers have boxed in (`boxed_in`) gets no curve verified at any of
         those margins, and trying them all costs seconds: it plans against the `relieved` ellipses
         (the margin near it given up down to the hard floor) first. Whichever comes first, the other
         is tried when it does not verify; with neither verified, the full-margin plan is returned —
-        or `no_path`, when the car is boxed in even with the margin near it at the hard floor.
+        or `no_path`, when the car is boxed in even with the margin near it at the hard floor. The
+        attempts of both are numbered in that order, and the search starts at attempt `first`.
         """
         config = self.config
         options = [(ellipses, config.repairs, False)]
@@ -473,25 +509,37 @@ class PlannerStage:
             option = (relieved, config.repairs[-1:], True)
             options = [option, *options] if relief_first else [*options, option]
         fallback: tuple[PathPlan, list[Ellipse], bool] | None = None
+        offset, attempts = 0, sum(1 + len(repairs) for _, repairs, _ in options)
+        first = first if first < attempts else 0  # every attempt failed on earlier inputs: start again
         for used, repairs, relief in options:
-            plan, smoothed = plan_until_verified(
+            ladder = margin_ladder(config.refine, repairs)
+            offset, skip = offset + len(ladder), first - offset
+            if skip >= len(ladder):
+                continue
+            attempted = plan_within(
                 start=position, heading_rad=heading_rad, goals=goals, ellipses=used,
                 bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
-                settings=config.refine, repairs=repairs,
+                ladder=ladder, late=late, first=max(0, skip),
                 smooth_fn=lambda points, used=used: self._smooth(points, goals=goals, ellipses=used),
             )
-            if smoothed is not None and smoothed.verification.ok:
+            if attempted.smoothed is not None and attempted.smoothed.verification.ok:
                 if relief:
                     logger.info("boxed in at (%.2f, %.2f): planned with the margin near the robot relieved "
                                 "to the hard floor", *position)
-                return plan, used, relief
+                return attempted.plan, used, relief, None
+            if attempted.resume_at is not None:
+                resume_at = offset - len(ladder) + attempted.resume_at
+                return PathPlan("no_path", np.zeros((0, 2)), reason=_LATE), used, relief, resume_at
             if not relief:
-                fallback = (plan, used, relief)
-        assert fallback is not None  # the full-margin option is always tried
+                fallback = (attempted.plan, used, relief)
+            if late() and offset < attempts:
+                return PathPlan("no_path", np.zeros((0, 2)), reason=_LATE), used, relief, offset
         floor = relieved if relieved is not None else ellipses
         if boxed_in(EllipseStack.of(floor), start=position, heading_rad=heading_rad,
                     max_curvature=config.max_curvature):
             # Nothing verified, and every turn crosses even the hard floor: the car, which only drives
             # forwards, cannot leave. Say so, rather than publish a curve the smoother must reject.
-            return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None
-        return fallback
+            return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None, None
+        if fallback is None:  # resumed past the full-margin option: its plan is not at hand
+            return PathPlan("no_path", np.zeros((0, 2)), reason="no replan verified"), ellipses, False, None
+        return (*fallback, None)

@@ -1,10 +1,13 @@
 """The sensing stage core: Scan → Clusters.
 
-Every scan's hits go into a `PointMemory` (obstacles behind the 180° sensor stay known), and all the
-remembered points are clustered anew by single linkage. Each cluster's points are sorted, and the
-clusters ordered by their first point, so the same memory always yields the same message: the next
-stage can then recognise an unchanged cluster by its content and skip refitting it. A scan that
-occupies no new voxel leaves the memory's point set, and so its clusters, as they were: they are reused.
+Every scan's hits go into a `PointMemory` (obstacles behind the 180° sensor stay known), and the
+remembered points' single-linkage clusters are kept as the memory grows (`LinkedClusters`: a new point
+is linked to its neighbours, not the memory clustered anew; when the memory drops points for room the
+clusters are made afresh). Each cluster's points are sorted, and the clusters ordered by their first
+point, so the same memory always yields the same message: the next stage can then recognise an
+unchanged cluster by its content and skip refitting it; only the clusters that gained points are
+sorted and made into messages again. A scan that occupies no new voxel leaves the memory's point set,
+and so its clusters, as they were: they are reused.
 
 A scan is checked before it is remembered (``services.limits``): at most one hit per ray, the pose
 inside the map, every hit within the sensor's range of it (10 % slack for range noise). Anything
@@ -29,7 +32,7 @@ from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header
 from services.geometry import PointMemory
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
-from services.sensing.core import cluster_points
+from services.sensing.core import LinkedClusters
 
 RANGE_SLACK = 1.1  # a hit may be measured this factor beyond the sensor's range (noise)
 
@@ -59,6 +62,10 @@ class SensingStage:
     def __init__(self, *, config: SensingConfig) -> None:
         self.config = config
         self.memory = PointMemory(voxel_m=config.voxel_m, max_points=config.max_points)
+        # The memory's clusters, kept as points are added; rebuilt when the memory drops some for room.
+        self._linked = LinkedClusters(link_m=config.link_m)
+        self._forgotten = 0  # `memory.forgotten` as `_linked` last saw it
+        self._messages: dict[int, ClusterMsg] = {}  # by root: each cluster's message, its id as last numbered
         # Reused while a scan adds no voxel (a still robot, a re-sent scan): the clusters cannot change.
         self._clusters: list[ClusterMsg] | None = None
         self._seq = 0
@@ -88,15 +95,21 @@ class SensingStage:
         if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
             raise StateError(f"expected finite (n, 2) points, got shape {points.shape}")
         self.memory.add(points)
-        self._state = None
+        self._state, self._clusters = None, None
+        self._relink()
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if not isinstance(message, Scan):
             raise StageInputError(f"sensing does not handle {topic!r}")
         if message.header.frame_id != "map":
             raise StageInputError(f"scan points must be in the map frame, got frame_id={message.header.frame_id!r}")
-        if self.memory.add(self._checked_hits(message)) or self._clusters is None:
+        added = self.memory.remember(self._checked_hits(message))
+        if len(added) or self._clusters is None:
             self._state = None
+            if self.memory.forgotten != self._forgotten:
+                self._relink()
+            else:
+                self._linked.add(added)
             self._clusters = self._clustered()
         out = Clusters(
             header=answer_header(scan_header=message.header, seq=self._seq),
@@ -106,15 +119,33 @@ class SensingStage:
         self._seq += 1
         return [("clusters", out)]
 
+    def _relink(self) -> None:
+        """Cluster the whole memory afresh (at start, on restore, and when it dropped points for room)."""
+        self._linked = LinkedClusters(link_m=self.config.link_m)
+        self._linked.add(self.memory.points())
+        self._forgotten = self.memory.forgotten
+        self._messages = {}
+
     def _clustered(self) -> list[ClusterMsg]:
-        """The memory's clusters, in canonical order (independent of the order points were remembered)."""
-        clusters = []
-        for points in cluster_points(self.memory.points(), link_m=self.config.link_m):
+        """The memory's clusters, in canonical order (independent of the order points were remembered).
+
+        Only the clusters that gained points are sorted and made into messages again; the others keep
+        theirs, renumbered when a new cluster comes before them.
+        """
+        linked = self._linked
+        roots = set(linked.roots())
+        self._messages = {root: msg for root, msg in self._messages.items() if root in roots}
+        for root in linked.changed:
+            points = linked.points_of(root)
             ordered = points[np.lexsort((points[:, 1], points[:, 0]))]
-            clusters.append(ordered)
-        clusters.sort(key=lambda c: (c[0, 0], c[0, 1]))
-        return [ClusterMsg(cluster_id=index, points=[(float(x), float(y)) for x, y in points], solid=False)
-                for index, points in enumerate(clusters)]
+            self._messages[root] = ClusterMsg(cluster_id=0, points=[(float(x), float(y)) for x, y in ordered],
+                                              solid=False)
+        linked.changed.clear()
+        order = sorted(self._messages, key=lambda root: self._messages[root].points[0])
+        for index, root in enumerate(order):
+            if self._messages[root].cluster_id != index:
+                self._messages[root] = self._messages[root].model_copy(update={"cluster_id": index})
+        return [self._messages[root] for root in order]
 
     def _checked_hits(self, scan: Scan) -> np.ndarray:
         config = self.config

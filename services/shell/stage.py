@@ -16,7 +16,8 @@ handles which do not decode are reported, never processed: garbage on a key cann
 message out unless it outnumbers the ring. After every input a stage publishes a ``StageStatus`` on
 ``<prefix>/status/<stage>``: ``error`` with a one-line reason for an input it could not use (oversize,
 bad JSON, wrong schema, non-finite number, validation failure, ``StageInputError``, solver failure),
-``ok`` otherwise; a source or sink reports only the errors, and a ``Refusal`` its core returns. A
+``ok`` otherwise (with the reason a core gives in a ``Notice``: an answer a deadline cut short); a
+source or sink reports only the errors, and a ``Refusal`` its core returns. A
 rejected input publishes nothing else, so the last good outputs stand. The status carries the rejected
 input's stamp (``input_stamp_s``) only when the input decoded; garbage on a key is reported, but never
 as the verdict on a real scan.
@@ -48,7 +49,7 @@ from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import zenoh
 from pydantic import BaseModel
@@ -68,6 +69,7 @@ from schemas.wiring import (
 from services.contract import (
     Bridging,
     Listening,
+    Notice,
     Outputs,
     Raw,
     Refusal,
@@ -83,7 +85,9 @@ from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
 from services.shell.watchdog import Progress
-from services.shell.ros2 import BridgePorts
+
+if TYPE_CHECKING:
+    from services.shell.ros2 import BridgePorts
 
 logger = logging.getLogger(__name__)
 
@@ -347,7 +351,7 @@ class _Shell:
         started = time.perf_counter()
         where = input_key or "tick"
         try:
-            messages, raws, refusals = self._checked(step())
+            messages, raws, refusals, notices = self._checked(step())
             if self._checkpoint is not None:  # before the outputs that depend on the state
                 self._checkpoint.save(self._core)  # type: ignore[arg-type]  # run_stage's contract
         except (DecodeError, StageInputError) as error:
@@ -368,7 +372,8 @@ class _Shell:
         if self._input_stamp_s is not None:
             self._last_stamp_s = self._input_stamp_s
         if report_ok:
-            self._report(input_key=input_key, started=started, reason=None)
+            self._report(input_key=input_key, started=started, reason=None,
+                         note="; ".join(one_line(notice.reason) for notice in notices))
         self._input_stamp_s = None  # a refusal concerns an earlier input, not this one's stamp
         for in_topic, refusal in refusals:
             self._report(input_key=self._refused_key(in_topic), started=started, reason=one_line(refusal.reason))
@@ -386,11 +391,16 @@ class _Shell:
         return self._core.process(topic=topic, message=self._frame.to_local(message), now_s=self._clock())
 
     def _checked(self, outputs: Outputs) -> tuple[list[tuple[str, BaseModel]], list[tuple[str, Raw]],
-                                                  list[tuple[str, Refusal]]]:
-        """A core's output batch split into messages, raw bytes and refusals; one that breaks the wiring
-        table (or the ROS interface) is rejected before any of it is published."""
-        messages, raws, refusals = [], [], []
+                                                  list[tuple[str, Refusal]], list[Notice]]:
+        """A core's output batch split into messages, raw bytes, refusals and notices; one that breaks the
+        wiring table (or the ROS interface) is rejected before any of it is published."""
+        messages, raws, refusals, notices = [], [], [], []
         for topic, item in outputs:
+            if isinstance(item, Notice):
+                if topic not in self._publishers:
+                    raise TypeError(f"stage {self._spec.name} does not publish {topic!r}")
+                notices.append(item)
+                continue
             if isinstance(item, Refusal):
                 if topic not in self._spec.subscribes and not (self.ros is not None and topic in self.ros.inputs):
                     raise TypeError(f"stage {self._spec.name} does not read {topic!r}")
@@ -406,15 +416,16 @@ class _Shell:
             if type(item) is not model_for(topic):
                 raise TypeError(f"{topic} carries {model_for(topic).__name__}, not {type(item).__name__}")
             messages.append((topic, item))
-        return messages, raws, refusals
+        return messages, raws, refusals, notices
 
-    def _report(self, *, input_key: str | None, started: float, reason: str | None) -> None:
+    def _report(self, *, input_key: str | None, started: float, reason: str | None, note: str = "") -> None:
+        """The status of one input: ``error`` with `reason`, else ``ok`` with the core's notices, if any."""
         stamp_s = self._last_stamp_s if self._input_stamp_s is None else self._input_stamp_s
         status = StageStatus(
             header=Header(stamp_s=stamp_s, seq=self._status_seq),
             stage=self._spec.name,
             state="ok" if reason is None else "error",
-            reason=reason or "",
+            reason=one_line(note) if reason is None else reason,
             input_key=input_key,
             input_stamp_s=self._input_stamp_s,
             processing_ms=(time.perf_counter() - started) * 1e3,
@@ -499,6 +510,8 @@ def run_stage(
         if spec.ros2:  # a source: its ROS inputs join the one queue
             if not isinstance(core, Bridging):
                 raise TypeError(f"stage {stage} is a ROS 2 node, but its core {type(core).__name__} does not bridge")
+            from services.shell.ros2 import BridgePorts  # the bridge's alone: the other stages start without it
+
             shell.ros = BridgePorts(session, domain_id=core.domain_id, namespace=core.namespace,
                                     deliver=lambda port, sample: queue((_ROS + port, sample)))
             declarations.callback(shell.ros.close)

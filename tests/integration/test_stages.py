@@ -133,6 +133,10 @@ class Harness:
         pytest.fail(f"{self.case.stage} did not answer seq {seq} within {timeout_s} s")
 
     def error_status(self, *, timeout_s: float = WAIT_S) -> StageStatus:
+        return self.status(lambda status: status.state == "error", what="error", timeout_s=timeout_s)
+
+    def status(self, wanted: Callable[[StageStatus], bool], *, what: str, timeout_s: float = WAIT_S) -> StageStatus:
+        """The first status `wanted` accepts."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             sample = self.statuses.try_recv()
@@ -140,9 +144,9 @@ class Harness:
                 time.sleep(0.005)
                 continue
             status = decode(StageStatus, sample.payload.to_bytes(), encoding=str(sample.encoding))
-            if status.state == "error":
+            if wanted(status):
                 return status
-        pytest.fail(f"{self.case.stage} reported no error within {timeout_s} s")
+        pytest.fail(f"{self.case.stage} reported no {what} within {timeout_s} s")
 
     def drain(self) -> None:
         for subscriber in (self.outputs, self.statuses):
@@ -270,3 +274,23 @@ def test_smoother_never_publishes_a_curve_that_fails_verification():
         time.sleep(0.2)
         assert harness.outputs.try_recv() is None
         assert isinstance(harness.answer(), SmoothPath)
+
+
+def test_an_answer_past_its_deadline_is_published_and_its_ok_status_says_so():
+    """A planner whose budget every answer overruns still publishes its (verified) answer; the shell puts
+    the core's notice on the ok status of that input, so a watcher sees why it came late."""
+    from dataclasses import replace
+
+    from services.planner.stage import PlannerConfig
+
+    config = replace(PlannerConfig.from_scenario(SCENARIO), budget_s=1e-9)
+    case = Case("planner", lambda: PlannerStage(config=config), CASES["planner"].inputs, RawPath)
+    with running(case) as harness:
+        harness.drain()
+        answer = harness.answer()
+        assert answer.status == "ok" and len(answer.points) >= 2
+        stamp_s = state(harness.next_seq).header.stamp_s
+        status = harness.status(lambda status: status.input_key == key(harness.prefix, "ellipsoids")
+                                and status.input_stamp_s == pytest.approx(stamp_s), what="status of the ellipsoids")
+        assert status.state == "ok"
+        assert status.reason.startswith("deadline: answered in") and status.reason.endswith("over the 0 ms budget")

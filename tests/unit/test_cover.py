@@ -12,7 +12,8 @@ from services.ellipsoids.cover import (
     cover_polygon,
     excess_over_points,
     excess_over_polygon,
-    point_cover,
+    tiled_cover,
+    tiles,
 )
 from services.ellipsoids.mvee import mvee, mvee_fast
 from services.geometry import EllipseStack
@@ -119,27 +120,46 @@ def _lexsorted(points):
     return points[np.lexsort((points[:, 1], points[:, 0]))]  # as the sensing stage sends a cluster
 
 
-def test_reused_fits_give_the_fresh_cover_of_a_growing_cluster():
-    """Each scan adds 1-10 points; the cover built on the previous scan's tree is the fresh one."""
-    obstacle = _revealed_obstacle()
-    rng = np.random.default_rng(5)
-    seen, previous, reused = 40, [], 0
-    while seen < len(obstacle):
-        points = _lexsorted(obstacle[:seen])
-        cover = point_cover(points, previous=previous, tolerance_m=0.1, max_pieces=32)
-        fresh = cover_points(points, tolerance_m=0.1, max_pieces=32)
-        assert len(cover.pieces) == len(fresh)
-        for piece, e in zip(cover.pieces, fresh):
-            np.testing.assert_allclose(piece.ellipse.A, e.A, rtol=1e-9, atol=1e-9 * np.abs(e.A).max())
-            np.testing.assert_allclose(piece.ellipse.center, e.center, rtol=0.0, atol=1e-9 * e.semi_axes[0])
-            assert piece.excess_m == excess_over_points(piece.ellipse, piece.points, tolerance_m=0.1)
-            assert np.all(piece.ellipse.level(piece.points) <= 1.0 + 1e-12)
-        earlier = {id(p.ellipse) for root in previous for p in _nodes(root)}
-        reused += sum(id(p.ellipse) in earlier for p in _nodes(cover.root))
-        previous = [cover.root]
-        seen += int(rng.integers(1, 11))
-    assert reused > 0  # the reuse path was taken, not only fresh fits
-
-
 def _nodes(root):
     return [root] + [node for child in root.children for node in _nodes(child)]
+
+
+def _leaves_by_cell(covers):
+    return {piece.cell: piece for cover in covers for piece in cover.pieces}
+
+
+def test_a_tiled_cover_of_a_growing_cluster_refits_only_the_cells_new_points_fall_in():
+    """Each scan adds 10-30 points. Every tile's cover contains its points and sticks out by at most the
+    tolerance; built on the previous scan's pieces it is the cover built
+    afresh; and a leaf whose cell gained no point keeps its ellipse, the same object."""
+    obstacle = _revealed_obstacle()
+    rng = np.random.default_rng(5)
+    seen, previous, before, kept = 40, {}, {}, 0
+    while seen < len(obstacle):
+        points = _lexsorted(obstacle[:seen])
+        covers = []
+        for cell, part in tiles(points, tile_m=2.0):
+            x0, y0, x1, y1 = cell
+            assert np.all((part >= (x0, y0)) & (part < (x1, y1)))
+            cover = tiled_cover(part, cell=cell, previous=previous, tolerance_m=0.1, max_pieces=32)
+            fresh = tiled_cover(part, cell=cell, tolerance_m=0.1, max_pieces=32)
+            assert [p.cell for p in cover.pieces] == [p.cell for p in fresh.pieces]
+            for piece, again in zip(cover.pieces, fresh.pieces):
+                np.testing.assert_allclose(piece.ellipse.A, again.ellipse.A, rtol=1e-9, atol=1e-9 * np.abs(again.ellipse.A).max())
+                assert np.all(piece.ellipse.level(piece.points) <= 1.0 + 1e-12)
+                assert piece.excess_m == excess_over_points(piece.ellipse, piece.points, tolerance_m=0.1) <= 0.1
+            covers.append(cover)
+        leaves = _leaves_by_cell(covers)
+        assert sum(len(p.points) for p in leaves.values()) == len(points)
+        for cell, piece in leaves.items():
+            old = before.get(cell)
+            if old is not None and np.array_equal(old.points, piece.points):
+                assert piece.ellipse is old.ellipse
+                kept += 1
+        previous = {}
+        for cover in covers:
+            for node in _nodes(cover.root):
+                previous.setdefault(node.cell, []).append(node)
+        before = leaves
+        seen += int(rng.integers(10, 31))
+    assert kept > 0

@@ -205,3 +205,59 @@ def test_goals_outside_the_map_are_refused_and_the_old_ones_stay():
     with pytest.raises(StageInputError, match=r"goals: goal 1: pose \(1e\+06, 0\) is outside the map bounds"):
         planner.process(topic="goals", message=far, now_s=0.0)
     assert np.array_equal(planner.config.goals, SCENARIO.goals_array)
+
+
+def _late_planner(scenario) -> PlannerStage:
+    """A planner whose budget every answer overruns: a nanosecond."""
+    from dataclasses import replace
+
+    from services.planner.stage import PlannerConfig
+
+    return PlannerStage(config=replace(PlannerConfig.from_scenario(scenario), budget_s=1e-9))
+
+
+def test_an_answer_past_the_deadline_is_still_a_verified_one_and_says_so(scenarios_dir):
+    """field-60's boxed-in pose with a budget every answer overruns: the first attempt still runs (no
+    deadline leaves the car without one), the plan it publishes verifies downstream, and the notice on
+    the status says the answer was late."""
+    from services.contract import Notice
+
+    scenario = load_scenario(scenarios_dir / "field-60.json")
+    doc = json.loads((Path(__file__).parents[1] / "data" / "field60-boxed-in.json").read_text())
+    robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
+    planner = _late_planner(scenario)
+    planner.process(topic="state", message=robot, now_s=0.0)
+    (topic, raw), (notice_topic, notice) = planner.process(topic="ellipsoids", message=sensed, now_s=0.0)
+    assert topic == notice_topic == "raw_path" and isinstance(notice, Notice)
+    assert notice.reason.startswith("deadline: answered in") and "over the 0 ms budget" in notice.reason
+    assert raw.status == "ok"
+    (_, curve), = SmootherStage.from_scenario(scenario).process(topic="raw_path", message=raw, now_s=0.0)
+    assert curve.status == "ok" and curve.max_curvature <= planner.config.max_curvature
+    guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
+    guard.know(sensed)
+    assert guard.check(curve.points, start=np.array([robot.pose.x_m, robot.pose.y_m])) is None
+
+
+def test_a_replan_the_deadline_cuts_publishes_no_unverified_path_and_goes_on_where_it_stopped():
+    """The unseen field's pocket, where no attempt verifies: with a budget every attempt overruns, each
+    scan tries the next attempt of the margin ladder, answers no_path with the deadline's reason (never
+    the unverified plan) until the ladder is done, and then says the car is boxed in, as without a deadline."""
+    from services.contract import Notice
+
+    doc = json.loads((Path(__file__).parents[1] / "data" / "unseen60-boxed-in.json").read_text())
+    scenario = parse_scenario(json.dumps(doc["scenario"]), source="unseen60-boxed-in")
+    robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
+    planner = _late_planner(scenario)
+    resumed = []
+    for seq in range(8):
+        state = robot.model_copy(update={"header": robot.header.model_copy(update={"seq": seq})})
+        planner.process(topic="state", message=state, now_s=0.0)
+        (_, raw), (_, notice) = planner.process(topic="ellipsoids", message=sensed.model_copy(update={"scan_seq": seq}),
+                                                now_s=0.0)
+        assert isinstance(notice, Notice) and raw.status == "no_path" and raw.points == []
+        if raw.reason.startswith("boxed in"):
+            break
+        assert raw.reason.startswith("deadline: no verified path") and "the replan goes on" in notice.reason
+        resumed.append(planner._resume[1])
+    assert raw.reason.startswith("boxed in") and planner._resume is None
+    assert resumed == sorted(resumed) and len(set(resumed)) == len(resumed) >= 2  # every scan a later attempt

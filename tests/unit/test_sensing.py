@@ -79,3 +79,37 @@ def test_memory_ignores_non_finite_rows() -> None:
     memory = PointMemory()
     assert memory.add([[np.inf, 0.0], [1.0, np.nan], [1.0, 1.0]]) == 1
     assert len(memory) == 1
+
+
+def test_the_stage_keeps_the_clusters_a_fresh_clustering_of_its_memory_gives():
+    """Scans of a field of obstacles from a moving pose, the memory small enough to drop points for room
+    part way: after every scan the stage's clusters (kept as points are added, rebuilt after a drop)
+    are those of `cluster_points` on the whole memory afresh, in the canonical order."""
+    from dataclasses import replace
+
+    from schemas.messages import Header, Pose2D, Scan
+    from schemas.scenario import bundled_scenario
+    from services.sensing.stage import SensingConfig, SensingStage
+
+    scenario = bundled_scenario()
+    config = replace(SensingConfig.from_scenario(scenario), max_points=1500)
+    stage = SensingStage(config=config)
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(2.0, 18.0, size=(40, 2))
+    dropped_at = None
+    for seq in range(40):
+        pose = np.array([1.0 + 0.4 * seq, 1.0 + 0.4 * seq])
+        near = centres[np.linalg.norm(centres - pose, axis=1) < 4.0]
+        hits = (near[rng.integers(0, len(near), 150)] + rng.normal(0.0, 0.3, (150, 2))) if len(near) else np.zeros((0, 2))
+        hits = hits[np.linalg.norm(hits - pose, axis=1) < 5.0]
+        scan = Scan(header=Header(stamp_s=0.1 * seq, seq=seq), pose=Pose2D(x_m=pose[0], y_m=pose[1], theta_rad=0.785),
+                    points=[(float(x), float(y)) for x, y in hits])
+        (_, out), = stage.process(topic="scan", message=scan, now_s=0.0)
+        expected = sorted((c[np.lexsort((c[:, 1], c[:, 0]))].tolist()
+                           for c in cluster_points(stage.memory.points(), link_m=config.link_m)), key=lambda c: c[0])
+        assert [c.cluster_id for c in out.clusters] == list(range(len(expected)))
+        assert [[list(p) for p in c.points] for c in out.clusters] == expected
+        assert sum(len(c.points) for c in out.clusters) == len(stage.memory)
+        if dropped_at is None and stage.memory.forgotten:
+            dropped_at = seq
+    assert dropped_at is not None and dropped_at < 39  # the rebuild after a drop was exercised, and growth after it
