@@ -13,6 +13,14 @@ samples too.
 A Clusters message holds at most as many points as the sensing stage remembers, all within the
 sensor's reach of the map (``services.limits``). Degenerate clusters (one point, all points equal,
 collinear: a wall seen edge-on) are real obstacles and are covered like any other.
+
+A known map (``Map``, a robot's /map from the ROS 2 bridge) adds its walls: the wall cover of the grid
+(`services.ellipsoids.grid_cover`, the cover `cvxnav plan` plans on a map with), fitted tile by tile
+as the robot comes near, and every grown ellipse of it within `EllipsoidsConfig.map_window_m` of the
+robot (the newest ``RobotState``) goes out with the sensed ones, each its own cluster (negative ids),
+grouped with them. So the planner, the smoother and the path guard keep the margin from the map's
+walls as from sensed obstacles, with no change of theirs; beyond the window the plan is what it is
+beyond a scan's reach, replanned as the robot comes nearer. A new map replaces the cover.
 """
 
 from __future__ import annotations
@@ -24,14 +32,16 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import Clusters, Ellipsoids
+from schemas.messages import Clusters, Ellipsoids, Map, RobotState
+from schemas.occupancy import MapError
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError
-from services.convert import answer_header, ellipse_to_msg
+from services.convert import answer_header, ellipse_to_msg, grid_from_msg
 from services.ellipsoids.cover import Piece, point_cover
 from services.ellipsoids.gap import gap_samples, group_ellipses
-from services.geometry import Ellipse
-from services.limits import MAX_SENSED_POINTS, Reach, check_count
+from services.ellipsoids.grid_cover import GridCover, GridPiece
+from services.geometry import Ellipse, EllipseStack
+from services.limits import MAX_ELLIPSES, MAX_SENSED_POINTS, Reach, check_count
 
 
 @dataclass(frozen=True)
@@ -42,6 +52,9 @@ class EllipsoidsConfig:
     tolerance_m: float = 0.1  # how far a fitted ellipse may stick out of its points
     max_pieces: int = 32  # ellipses per cluster at most
     cache_size: int = 1024  # clusters whose fits are remembered
+    # A known map's walls within this of the robot join the sensed obstacles: the plan near the robot
+    # keeps clear of them (about 300 ellipses in the ACES building's corridors).
+    map_window_m: float = 10.0
 
     @property
     def min_gap_m(self) -> float:
@@ -50,7 +63,8 @@ class EllipsoidsConfig:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsConfig:
-        return cls(inflation_m=scenario.inflation_m, reach=Reach.of(scenario))
+        return cls(inflation_m=scenario.inflation_m, reach=Reach.of(scenario),
+                   map_window_m=min(10.0, float(scenario.sensor.range)))
 
 
 @dataclass(frozen=True)
@@ -70,6 +84,9 @@ class EllipsoidsStage:
         self._trees: dict[bytes, Piece] = {}
         self._fitted: dict[int, _Fitted] = {}
         self._seq = 0
+        self.map: GridCover | None = None  # a known map's wall cover
+        self._map_fits: dict[int, tuple[int, _Fitted]] = {}  # by piece: its cluster id and its fit
+        self.position: np.ndarray | None = None  # the robot's, from the newest state
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsStage:
@@ -98,7 +115,43 @@ class EllipsoidsStage:
             return known
         return _Fitted(ellipse=ellipse, grown=ellipse.grown(self.config.inflation_m), samples=gap_samples(ellipse))
 
+    def _take_map(self, message: Map) -> None:
+        """A new map: its wall cover replaces the old one, fitted as the robot comes near."""
+        try:
+            grid = grid_from_msg(message)
+        except MapError as error:
+            raise StageInputError(f"map: {error}") from None
+        self.map, self._map_fits = GridCover(grid, margin_m=self.config.inflation_m), {}
+
+    def _map_walls(self, *, room: int) -> list[tuple[int, _Fitted]]:
+        """The map's wall ellipses (cluster id, fit) whose grown ellipse comes within the window of the robot,
+        nearest first, at most ``room``."""
+        if self.map is None or self.position is None:
+            return []
+        window = self.config.map_window_m
+        pieces = self.map.pieces(self.map.tiles_near(self.position[None, :], window + self.map.reach_m))
+        if not pieces:
+            return []
+        stack = EllipseStack.of([piece.grown for piece in pieces])
+        gap = np.linalg.norm(stack.centers - self.position, axis=1) - stack.reach
+        near = [pieces[k] for k in np.argsort(gap, kind="stable") if gap[k] <= window]
+        return [self._map_fit(piece) for piece in near[:room]]
+
+    def _map_fit(self, piece: GridPiece) -> tuple[int, _Fitted]:
+        known = self._map_fits.get(id(piece))
+        if known is None:
+            known = (-1 - len(self._map_fits), _Fitted(ellipse=piece.raw, grown=piece.grown,
+                                                       samples=gap_samples(piece.raw)))
+            self._map_fits[id(piece)] = known
+        return known
+
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
+        if isinstance(message, Map):
+            self._take_map(message)
+            return []
+        if isinstance(message, RobotState):
+            self.position = np.array([message.pose.x_m, message.pose.y_m])
+            return []
         if not isinstance(message, Clusters):
             raise StageInputError(f"ellipsoids does not handle {topic!r}")
         check_count(sum(len(c.points) for c in message.clusters), limit=self.config.max_points,
@@ -119,6 +172,9 @@ class EllipsoidsStage:
             cluster_ids.extend([cluster_id] * len(cover))
         self._trees = trees
         self._fitted = {id(f.ellipse): f for f in fitted}
+        for cluster_id, wall in self._map_walls(room=MAX_ELLIPSES - len(fitted)):
+            fitted.append(wall)
+            cluster_ids.append(cluster_id)
         # A cluster is one obstacle, so its pieces share a group from the start (the default sensing
         # links points closer than r, so adjacent pieces are closer than the passage 2 r anyway); only
         # pairs across clusters are examined.

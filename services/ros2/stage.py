@@ -3,7 +3,8 @@
 `Ros2Bridge` does the work; this is what the one shell (``services.shell``) asks of a core: the robot's
 topics come in as raw CDR (``Bridging.receive``), the pipeline's paths and ellipses as messages
 (``process``), the pipeline stages' liveliness as ``stage_alive`` and a timer as ``tick``. Out go the
-pipeline's scan and state, the goals of a /goal_pose, and /plan and /cmd_vel as CDR (``Raw``). A
+pipeline's scan and state, the goals of a /goal_pose, the map of a /map, and /plan and /cmd_vel as CDR
+(``Raw``). A
 rejected input is a ``Refusal`` on the input's port, so the shell reports it on the bridge's status
 key, next to the zero /cmd_vel the robot brakes on; nothing else the bridge holds is lost.
 
