@@ -17,8 +17,9 @@ collinear: a wall seen edge-on) are real obstacles and are covered like any othe
 A known map (``Map``, a robot's /map from the ROS 2 bridge) adds its walls: the wall cover of the grid
 (`services.ellipsoids.grid_cover`, the cover `cvxnav plan` plans on a map with), fitted tile by tile
 as the robot comes near, and every grown ellipse of it within `EllipsoidsConfig.map_window_m` of the
-robot (the newest ``RobotState``) goes out with the sensed ones, each its own cluster (negative ids),
-grouped with them. So the planner, the smoother and the path guard keep the margin from the map's
+robot (the newest ``RobotState``) goes out with the sensed ones as one more cluster (`MAP_CLUSTER_ID`:
+the building is one obstacle, so the planner never takes the gap between two of its walls for a way
+between two obstacles; sensed ones closer to it than the robot's passage join its group). So the planner, the smoother and the path guard keep the margin from the map's
 walls as from sensed obstacles, with no change of theirs; beyond the window the plan is what it is
 beyond a scan's reach, replanned as the robot comes nearer. A new map replaces the cover.
 """
@@ -40,8 +41,10 @@ from services.convert import answer_header, ellipse_to_msg, grid_from_msg
 from services.ellipsoids.cover import Piece, point_cover
 from services.ellipsoids.gap import gap_samples, group_ellipses
 from services.ellipsoids.grid_cover import GridCover, GridPiece
-from services.geometry import Ellipse, EllipseStack
+from services.geometry import Ellipse
 from services.limits import MAX_ELLIPSES, MAX_SENSED_POINTS, Reach, check_count
+
+MAP_CLUSTER_ID = -1  # the cluster of a known map's walls (the sensing stage's ids count from 0)
 
 
 @dataclass(frozen=True)
@@ -85,7 +88,9 @@ class EllipsoidsStage:
         self._fitted: dict[int, _Fitted] = {}
         self._seq = 0
         self.map: GridCover | None = None  # a known map's wall cover
-        self._map_fits: dict[int, tuple[int, _Fitted]] = {}  # by piece: its cluster id and its fit
+        self._map_fits: dict[int, _Fitted] = {}  # by piece
+        # Every fitted piece's fit, centre and reach, as of a count of fitted tiles (the cover only grows).
+        self._map_index: tuple[int, list[_Fitted], np.ndarray, np.ndarray] | None = None
         self.position: np.ndarray | None = None  # the robot's, from the newest state
 
     @classmethod
@@ -121,27 +126,31 @@ class EllipsoidsStage:
             grid = grid_from_msg(message)
         except MapError as error:
             raise StageInputError(f"map: {error}") from None
-        self.map, self._map_fits = GridCover(grid, margin_m=self.config.inflation_m), {}
+        self.map, self._map_fits, self._map_index = GridCover(grid, margin_m=self.config.inflation_m), {}, None
 
-    def _map_walls(self, *, room: int) -> list[tuple[int, _Fitted]]:
-        """The map's wall ellipses (cluster id, fit) whose grown ellipse comes within the window of the robot,
-        nearest first, at most ``room``."""
+    def _map_walls(self, *, room: int) -> list[_Fitted]:
+        """The map's wall ellipses whose grown ellipse comes within the window of the robot, nearest first,
+        at most ``room``. Every fitted piece is a candidate, not only those kept under the tiles near the
+        robot: a piece fitted with its neighbours' block is kept under the tile of its first cell, which
+        may lie farther off than the wall it reaches."""
         if self.map is None or self.position is None:
             return []
         window = self.config.map_window_m
-        pieces = self.map.pieces(self.map.tiles_near(self.position[None, :], window + self.map.reach_m))
-        if not pieces:
-            return []
-        stack = EllipseStack.of([piece.grown for piece in pieces])
-        gap = np.linalg.norm(stack.centers - self.position, axis=1) - stack.reach
-        near = [pieces[k] for k in np.argsort(gap, kind="stable") if gap[k] <= window]
-        return [self._map_fit(piece) for piece in near[:room]]
+        self.map.pieces(self.map.tiles_near(self.position[None, :], window + self.map.reach_m))
+        if self._map_index is None or self._map_index[0] != len(self.map.fitted):
+            fits = [self._map_fit(piece) for tile in self.map.fitted.values() for piece in tile]
+            centres = np.array([f.grown.center for f in fits]).reshape(-1, 2)
+            reach = np.array([f.grown.semi_axes[0] for f in fits])
+            self._map_index = (len(self.map.fitted), fits, centres, reach)
+        _, fits, centres, reach = self._map_index
+        gap = np.linalg.norm(centres - self.position, axis=1) - reach
+        near = np.flatnonzero(gap <= window)
+        return [fits[k] for k in near[np.argsort(gap[near], kind="stable")][:room]]
 
-    def _map_fit(self, piece: GridPiece) -> tuple[int, _Fitted]:
+    def _map_fit(self, piece: GridPiece) -> _Fitted:
         known = self._map_fits.get(id(piece))
         if known is None:
-            known = (-1 - len(self._map_fits), _Fitted(ellipse=piece.raw, grown=piece.grown,
-                                                       samples=gap_samples(piece.raw)))
+            known = _Fitted(ellipse=piece.raw, grown=piece.grown, samples=gap_samples(piece.raw))
             self._map_fits[id(piece)] = known
         return known
 
@@ -150,6 +159,7 @@ class EllipsoidsStage:
             self._take_map(message)
             return []
         if isinstance(message, RobotState):
+            self.config.reach.check_pose(message.pose, what="state")
             self.position = np.array([message.pose.x_m, message.pose.y_m])
             return []
         if not isinstance(message, Clusters):
@@ -172,9 +182,9 @@ class EllipsoidsStage:
             cluster_ids.extend([cluster_id] * len(cover))
         self._trees = trees
         self._fitted = {id(f.ellipse): f for f in fitted}
-        for cluster_id, wall in self._map_walls(room=MAX_ELLIPSES - len(fitted)):
-            fitted.append(wall)
-            cluster_ids.append(cluster_id)
+        walls = self._map_walls(room=MAX_ELLIPSES - len(fitted))
+        fitted.extend(walls)
+        cluster_ids.extend([MAP_CLUSTER_ID] * len(walls))
         # A cluster is one obstacle, so its pieces share a group from the start (the default sensing
         # links points closer than r, so adjacent pieces are closer than the passage 2 r anyway); only
         # pairs across clusters are examined.
