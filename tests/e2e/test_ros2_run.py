@@ -6,8 +6,9 @@ rosbags, which cvxnav encodes with), every liveliness token and every stage stat
 
 - The ACES building log (`../shared/external/carmen/aces-bag`, 440 real scans, nobody's drawing) is
   played by `cvxnav ros2 play` at 3x into the run, up to where the recorded route reaches the
-  scenario's goal: the plans must be the robot's (its frame, from its pose, to its goal), keep its
-  margin from every real hit it had had for half a second, and the commands must flow.
+  scenario's goal, with the building's map_server map on /map: the plans must be the robot's (its
+  frame, from its pose, to its goal), keep its margin from every real hit it had had for half a second
+  and from the map's walls, and the commands must flow.
 - A synthetic robot's node publishes the inputs the issue names as breaking ones into a live run.
 """
 
@@ -31,10 +32,12 @@ import zenoh
 
 from cvxnav.supervisor import free_ports, stop_processes
 from ros2_bag import aces_bag_dir, independent_decoder
-from ros2_messages import laser_scan, odometry
+from ros2_messages import laser_scan, map_server_grid, odometry
 from schemas.messages import StageStatus, decode
+from schemas.occupancy import load_map
 from schemas.scenario import bundled_scenario, load_scenario
 from schemas.wiring import PIPELINE, ROS2, default_prefix, status_key
+from services.ellipsoids.stage import EllipsoidsConfig
 from services.ros2.bridge import yaw_of
 from services.ros2.interface import BRIDGE_NODE, BRIDGE_TOPICS
 from services.ros2.wire import EntityKind, parse_token
@@ -175,8 +178,16 @@ def hits_of(scan, odom, *, max_range_m: float) -> np.ndarray:
 def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands_flow(shared_dir, tmp_path) -> None:
     scenario = load_scenario(ACES)
     goal = np.asarray(scenario.goals[-1])
+    aces_map = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    walls = load_map(aces_map)
+    # Less a metre the robot may have moved between the state the ellipsoid stage had and the plan's start.
+    wall_window_m = EllipsoidsConfig.from_scenario(scenario).map_window_m - 1.0
     with robot_graph(tmp_path) as (endpoint, graph), run_ros2(ACES, endpoint=endpoint, graph=graph,
                                                               cwd=tmp_path) as run:
+        map_server = RosNode(graph.session, name="map_server")  # latched, as Nav2's map_server publishes it
+        topic = BRIDGE_TOPICS["map"]
+        map_server.publisher(topic=topic.name, msgtype=topic.msgtype, type_hash=topic.type_hash,
+                             qos=topic.qos).put(map_server_grid(aces_map))
         player = subprocess.Popen([sys.executable, "-m", "cvxnav", "ros2", "play", str(aces_bag_dir(shared_dir)),
                                    "--rate", str(RATE), "--delay", "1", "--connect", endpoint], cwd=tmp_path,
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -191,6 +202,7 @@ def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands
             assert player.wait(timeout=30) == 0
         finally:
             stop_processes([player], grace_s=5.0)
+            map_server.close()
         time.sleep(1.5)  # the watchdog's zeros once the odometry has stopped
         code, log = stop_run(run, cwd=tmp_path)
     assert code == 0, log[-3000:]
@@ -198,7 +210,7 @@ def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands
 
     # Every real scan and odometry was taken: the bridge placed every scan, the sensing stage took it.
     refused = [(s.stage, s.reason) for _, s in graph.statuses if s.state == "error"
-               and (s.stage == "sensing" or s.reason.startswith(("scan:", "odom:")))]
+               and (s.stage in ("sensing", "ellipsoids") or s.reason.startswith(("scan:", "odom:", "map:")))]
     assert refused == []
     odoms, scans, plans, commands = (graph.of(topic) for topic in ("odom", "scan", "plan", "cmd_vel"))
     assert len(odoms) == len(scans) >= 31
@@ -206,7 +218,7 @@ def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands
     hits = [(t, hits_of(m, odom_at[stamp_s(m)], max_range_m=float(scenario.sensor.range))) for t, m in scans]
     scan_arrival = {stamp_s(m): t for t, m in scans}
     assert plans, f"no /plan; statuses: {[s.reason for _, s in graph.statuses][-10:]}"
-    latencies_ms, clearances = [], []
+    latencies_ms, clearances, wall_clearances = [], [], []
     for arrived, plan in plans:
         # The robot's plan: in its odometry's frame, stamped with the scan it answers, from where the robot
         # was when it was planned (the newest pose the planner had, between that scan and the plan) to its goal.
@@ -217,6 +229,13 @@ def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands
         assert min(math.dist(points[0], pose) for pose in poses) <= 0.5  # the planner's max_cross_track_m
         assert np.linalg.norm(points[-1] - goal) <= 1e-6
         latencies_ms.append(1e3 * (arrived - scan_arrival[stamp_s(plan)]))
+        # The margin from the map's walls (its occupied and unknown cells) within the ellipsoid stage's
+        # window, or what the robot had from them. Beyond it the plan is what it is beyond a scan's reach.
+        near = points[np.linalg.norm(points - points[0], axis=1) <= wall_window_m]
+        wall = float(walls.clearance(near).min())
+        wall_at_start = float(walls.clearance(np.array([points[0], poses[-1]])).min())
+        assert wall >= min(scenario.keep_out_m, wall_at_start) - 0.02, (wall, wall_at_start)
+        wall_clearances.append(wall)
         # Its margin from every real hit the robot had had for half a second: the run's hard floor, or
         # what the robot itself had (where the plan starts, or where it was then), if it was closer.
         known = [h for t, h in hits if t <= arrived - WINDOW_S]
@@ -241,7 +260,8 @@ def test_a_real_laser_log_is_planned_through_with_the_robots_margin_and_commands
     # The graph named the bridge's node and its topics while it ran, and none of them once it stopped.
     assert graph.bridge_entities() == set()
     print(f"\nACES at {RATE:g}x: {len(scans)} scans, {len(plans)} plans on /plan, scan -> /plan latency p50 "
-          f"{np.median(latencies_ms):.0f} / max {max(latencies_ms):.0f} ms, min clearance {min(clearances):.3f} m, "
+          f"{np.median(latencies_ms):.0f} / max {max(latencies_ms):.0f} ms, min clearance {min(clearances):.3f} m "
+          f"(map walls within {wall_window_m:g} m {min(wall_clearances):.3f} m), "
           f"{int(np.count_nonzero(speed))} of {len(speed)} commands moving")
 
 
