@@ -2,7 +2,8 @@
 pipeline stages each in their own thread and session, joined through a router as `cvxnav run --ros2`
 joins the robot's. The robot's side is a ROS node that publishes the depot's map_server map on /map
 (transient local, before the bridge is up), odometry at depot-1's start and scans with no return, so the
-map's walls are the only obstacles; /plan is decoded with mcap-ros2-support."""
+map's walls are the only obstacles; /plan is decoded with mcap-ros2-support. The ellipsoid stage starts
+only once the map has gone out on the pipeline's key: it gets it as a latched topic's late subscriber."""
 
 from __future__ import annotations
 
@@ -80,11 +81,12 @@ def test_a_map_on_rmw_zenohs_key_reaches_the_ellipsoid_stage_and_the_plans_keep_
 
         cores = {name: CORES[name].from_scenario(scenario) for name in PIPELINE}
         cores[ROS2.name] = BridgeStage.from_scenario(scenario, domain_id=DOMAIN)
-        threads = [threading.Thread(target=run_stage, name=f"stage-{name}", daemon=True, kwargs=dict(
+        threads = {name: threading.Thread(target=run_stage, name=f"stage-{name}", daemon=True, kwargs=dict(
             stage=name, core=core, session_config=build_zenoh_config(connect=[endpoint]), prefix=PREFIX,
-            stop_event=stop)) for name, core in cores.items()]
-        for thread in threads:
-            thread.start()
+            stop_event=stop)) for name, core in cores.items()}
+        for name, thread in threads.items():
+            if name != "ellipsoids":
+                thread.start()
         clock = {"t_s": 100.0}
 
         def robot_tick() -> None:
@@ -99,13 +101,15 @@ def test_a_map_on_rmw_zenohs_key_reaches_the_ellipsoid_stage_and_the_plans_keep_
         try:
             sent = wait_for(received["map"], lambda m: True, what="map on the pipeline's key", tick=robot_tick)
             np.testing.assert_array_equal(grid_from_msg(sent).state, depot.state)
+            threads["ellipsoids"].start()
             walls = wait_for(received["ellipsoids"], lambda e: any(x.cluster_id == MAP_CLUSTER_ID for x in e.ellipsoids),
                              what="ellipsoids with the map's walls", tick=robot_tick)
             plan = wait_for(received["plan"], lambda p: len(p.poses) > 1, what="plan", tick=robot_tick)
         finally:
             stop.set()
-            for thread in threads:
-                thread.join(10.0)
+            for thread in threads.values():
+                if thread.is_alive():
+                    thread.join(10.0)
             node.close()
             for subscriber in subscribers:
                 subscriber.undeclare()

@@ -411,6 +411,14 @@ def test_a_map_is_in_the_odometrys_frame_or_refused(bridge, shared_dir) -> None:
     assert "5 cells of data for a 3 x 2 grid" in put(bridge, "map", broken).error
 
 
+def test_a_map_whose_cells_do_not_compress_within_the_pipelines_payload_cap_is_refused(bridge) -> None:
+    noise = np.random.default_rng(7).choice(np.array([0, 100, -1], dtype=np.int8), size=2048 * 2048)
+    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0))
+    refused = put(bridge, "map", occupancy_grid(noise, width=2048, height=2048, resolution_m=0.05, origin=(0.0, 0.0)))
+    assert f"more than the pipeline's {DEFAULT_MAX_PAYLOAD_BYTES} a message may have" in refused.error
+    assert refused.pipeline == [] and bridge.map is None
+
+
 def test_an_odometry_in_another_frame_than_the_maps_is_refused(bridge) -> None:
     grid = occupancy_grid([0, 100, -1, 0, 0, 100], width=3, height=2, resolution_m=0.05, origin=(-27.266, -48.329))
     assert put(bridge, "map", grid).error is None
