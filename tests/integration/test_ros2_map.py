@@ -7,6 +7,7 @@ only once the map has gone out on the pipeline's key: it gets it as a latched to
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -80,6 +81,8 @@ def test_a_map_on_rmw_zenohs_key_reaches_the_ellipsoid_stage_and_the_plans_keep_
         publishers["map"].put(map_server_grid(depot_yaml))  # latched: the bridge, not up yet, queries it
 
         cores = {name: CORES[name].from_scenario(scenario) for name in PIPELINE}
+        # The map's walls within 10 m: the whole way to the goal 8 m on.
+        cores["ellipsoids"].config = dataclasses.replace(cores["ellipsoids"].config, map_window_m=10.0)
         cores[ROS2.name] = BridgeStage.from_scenario(scenario, domain_id=DOMAIN)
         threads = {name: threading.Thread(target=run_stage, name=f"stage-{name}", daemon=True, kwargs=dict(
             stage=name, core=core, session_config=build_zenoh_config(connect=[endpoint]), prefix=PREFIX,

@@ -3,6 +3,8 @@ go out with the sensed obstacles, so the planner and the smoother, unchanged, ke
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -32,6 +34,13 @@ def scenario(shared_dir):
                                    "sensor": base.sensor.model_copy(update={"range": 10.0})})
 
 
+def stage_of(scenario) -> EllipsoidsStage:
+    """The ellipsoid stage, sending the map's walls within 10 m: the whole way to the goal 8 m on."""
+    stage = EllipsoidsStage.from_scenario(scenario)
+    stage.config = dataclasses.replace(stage.config, map_window_m=10.0)
+    return stage
+
+
 def header(seq: int) -> Header:
     return Header(stamp_s=0.1 * seq, seq=seq)
 
@@ -50,7 +59,7 @@ def ellipsoids_with_map(stage: EllipsoidsStage, grid: OccupancyGrid, *, seq: int
 
 
 def test_every_point_of_the_window_within_the_margin_of_a_wall_is_inside_a_map_ellipse(scenario, depot) -> None:
-    stage = EllipsoidsStage.from_scenario(scenario)
+    stage = stage_of(scenario)
     window, r = stage.config.map_window_m, scenario.inflation_m
     sensed = ClusterMsg(cluster_id=0, points=[(12.0, 7.0), (12.1, 7.05)])
     out = ellipsoids_with_map(stage, depot, clusters=[sensed])
@@ -71,18 +80,21 @@ def test_every_point_of_the_window_within_the_margin_of_a_wall_is_inside_a_map_e
 
 
 def test_a_new_map_replaces_the_old_ones_walls(scenario, depot) -> None:
-    stage = EllipsoidsStage.from_scenario(scenario)
+    stage = stage_of(scenario)
     ellipsoids_with_map(stage, depot)
+    cover = stage.map
+    ellipsoids_with_map(stage, depot, seq=1)  # the same map again (a stage that came back): the cover is kept
+    assert stage.map is cover and cover.fitted
     open_floor = OccupancyGrid.from_mask(np.zeros((400, 600), dtype=bool), resolution_m=0.05)  # 30 x 20 m, no wall
-    out = ellipsoids_with_map(stage, open_floor, seq=1)
-    assert out.ellipsoids == ellipsoids_with_map(EllipsoidsStage.from_scenario(scenario), open_floor, seq=1).ellipsoids
+    out = ellipsoids_with_map(stage, open_floor, seq=2)
+    assert out.ellipsoids == ellipsoids_with_map(stage_of(scenario), open_floor, seq=2).ellipsoids
     robot = np.array([START.x_m, START.y_m])
     # Only the edge of the map is left (beyond it nothing is known): 5.6 m from the robot at the nearest.
     assert EllipseStack.of(ellipses_from_msgs(out.ellipsoids)).levels(robot[None] + [[0.0, -5.0]]).min() > 1.0
 
 
 def test_the_plan_on_a_known_map_keeps_the_margin_from_its_walls(scenario, depot) -> None:
-    out = ellipsoids_with_map(EllipsoidsStage.from_scenario(scenario), depot)  # nothing sensed: only the map
+    out = ellipsoids_with_map(stage_of(scenario), depot)  # nothing sensed: only the map
     planner, smoother = PlannerStage.from_scenario(scenario), SmootherStage.from_scenario(scenario)
     planner.process(topic="state", message=state(0), now_s=0.0)
     (_, raw), = planner.process(topic="ellipsoids", message=out, now_s=0.0)

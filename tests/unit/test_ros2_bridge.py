@@ -19,11 +19,13 @@ from ros2_messages import header, laser_scan, map_server_grid, occupancy_grid, o
 from schemas.messages import EllipsoidMsg, Ellipsoids, Header, Map, SmoothPath, decode, encode
 from schemas.occupancy import FREE, OCCUPIED, UNKNOWN, load_map
 from schemas.scenario import load_scenario
+from schemas.wiring import PIPELINE, subscribers_of
 from services.convert import grid_from_msg
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.drive.vehicle import VehicleState, step
 from services.ros2 import typesupport
 from services.ros2.bridge import BridgeConfig, Ros2Bridge, body_twist
+from services.ros2.stage import BridgeStage
 from services.ros2.interface import BRIDGE_TOPICS
 
 SCENARIO = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
@@ -417,6 +419,20 @@ def test_a_map_whose_cells_do_not_compress_within_the_pipelines_payload_cap_is_r
     refused = put(bridge, "map", occupancy_grid(noise, width=2048, height=2048, resolution_m=0.05, origin=(0.0, 0.0)))
     assert f"more than the pipeline's {DEFAULT_MAX_PAYLOAD_BYTES} a message may have" in refused.error
     assert refused.pipeline == [] and bridge.map is None
+
+
+def test_a_stage_that_reads_the_map_gets_it_again_when_it_comes_back(scenario, shared_dir) -> None:
+    stage = BridgeStage.from_scenario(scenario)
+    for name in PIPELINE:
+        assert stage.stage_alive(stage=name, alive=True, now_s=0.0) == []  # no map yet
+    stage.receive(port="map", key_expr=stage.bridge.keys["map"], payload=map_server_grid(shared_dir / "maps" /
+                                                                                        "depot.yaml"), now_s=0.0)
+    sent = [m for topic, m in stage.receive(port="odom", key_expr=stage.bridge.keys["odom"], now_s=0.1,
+                                            payload=odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0)) if topic == "map"]
+    for name in PIPELINE:
+        stage.stage_alive(stage=name, alive=False, now_s=0.2)
+        again = stage.stage_alive(stage=name, alive=True, now_s=0.3)
+        assert again == ([("map", sent[0])] if name in subscribers_of("map") else [])
 
 
 def test_an_odometry_in_another_frame_than_the_maps_is_refused(bridge) -> None:
