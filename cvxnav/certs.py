@@ -2,10 +2,12 @@
 
 Mutual TLS: every link is TLS, the router only accepts clients whose certificate this CA signed, and
 clients only trust a router this CA signed (name checked against its subjectAltName). Zenoh's access
-control then matches the certificate's common name: only the pipeline's stages (and the monitor and
-an operator for `cvxnav status`) may put, subscribe, query or hold liveliness tokens under the prefix;
-everything else is denied by default. A certificate from another CA never gets a link; a valid
-certificate with another name gets a link that carries nothing.
+control then matches the certificate's common name against the least privilege the wiring table
+(`schemas.wiring`) gives it (`grants`): each key may be put only by the process the table names as its
+publisher, each process subscribes only to what it reads, holds a liveliness token only under its own
+name and puts only its own status; the monitor and the operator (`cvxnav status`) only read. Everything
+else is denied by default. A certificate from another CA never gets a link; a valid certificate with
+another name gets a link that carries nothing.
 
 Keys are ECDSA P-256 in PKCS#8 PEM, certificates X.509 v3 (what rustls, Zenoh's TLS, requires: the
 leaf has CA:false and a subjectAltName; the CN is only used by the access-control subjects).
@@ -26,7 +28,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from schemas.wiring import PROCESSES
+from schemas.wiring import PROCESSES, TOPICS, alive_key, every_key, key, status_key
 
 ROUTER = "router"
 OPERATOR = "operator"  # the name `cvxnav status` connects with
@@ -36,6 +38,9 @@ ACL_MESSAGES = (
     "put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
     "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
 )
+# One permission of the router's access control: (flow seen from the router, message, key expression).
+# "ingress" is what the certificate's session sends the router, "egress" what the router sends it.
+Grant = tuple[str, str, str]
 
 
 def pipeline_names() -> tuple[str, ...]:
@@ -110,16 +115,66 @@ def issue(*, ca: Issued, common_name: str, hosts: Sequence[str] = (), now: dt.da
     return Issued(certificate=cert, private_key=key)
 
 
+def grants(name: str, *, key_prefix: str = "cvxnav") -> frozenset[Grant]:
+    """What the certificate ``name`` may do, derived from the wiring table; nothing for a name it lacks.
+
+    Keys are granted for any robot id (``<key_prefix>/*/...``): a certificate is a role, not a robot.
+    A publisher may put its keys and be told who subscribes to them (a declared publisher sends only
+    towards known subscribers); a reader may subscribe to them and be sent them. A latched key's
+    publisher answers queries on it, and its readers may ask. Every process holds its token and puts its status only
+    under its own name; the sources that follow liveliness may watch the tokens, the processes that
+    hear statuses may read them. The operator (`cvxnav status`) reads every key and asks the tokens.
+    """
+    space = f"{key_prefix}/*"
+    allowed: set[Grant] = set()
+    if name == OPERATOR:
+        allowed |= {("ingress", "declare_subscriber", every_key(space)), ("egress", "put", every_key(space)),
+                    ("ingress", "liveliness_query", alive_key(space)), ("egress", "liveliness_token", alive_key(space))}
+        return frozenset(allowed)
+    spec = PROCESSES.get(name)
+    if spec is None:
+        return frozenset()
+    for written in [key(space, topic) for topic in spec.publishes] + [status_key(space, name)]:
+        allowed |= {("ingress", "put", written), ("egress", "declare_subscriber", written)}
+    read = [key(space, topic) for topic in spec.subscribes] + ([status_key(space)] if spec.hears_statuses else [])
+    for topic_key in read:
+        allowed |= {("ingress", "declare_subscriber", topic_key), ("egress", "put", topic_key)}
+    for topic in spec.publishes:
+        if TOPICS[topic].latched:
+            allowed |= {("ingress", "declare_queryable", key(space, topic)), ("egress", "query", key(space, topic)),
+                        ("ingress", "reply", key(space, topic))}
+    for topic in spec.subscribes:
+        if TOPICS[topic].latched:
+            allowed |= {("ingress", "query", key(space, topic)), ("egress", "reply", key(space, topic))}
+    allowed.add(("ingress", "liveliness_token", alive_key(space, name)))
+    if spec.watches:
+        allowed |= {("ingress", "declare_liveliness_subscriber", alive_key(space)),
+                    ("egress", "liveliness_token", alive_key(space))}
+    return frozenset(allowed)
+
+
 def access_control(*, names: Sequence[str], key_prefix: str = "cvxnav") -> dict:
-    """Zenoh 1.x ``access_control``: deny by default; the named certificates may do everything under the prefix."""
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": [{"id": "pipeline", "messages": list(ACL_MESSAGES), "flows": ["ingress", "egress"],
-                   "permission": "allow", "key_exprs": [f"{key_prefix}/**"]}],
-        "subjects": [{"id": "pipeline-stages", "cert_common_names": list(names)}],
-        "policies": [{"id": "pipeline-policy", "rules": ["pipeline"], "subjects": ["pipeline-stages"]}],
-    }
+    """Zenoh 1.x ``access_control``: deny by default; each named certificate gets its ``grants``.
+
+    One subject and one policy per certificate; its grants become one rule per (flow, message), listing
+    the keys (Zenoh allows a message when a rule's key expression includes the message's key).
+    """
+    rules, subjects, policies = [], [], []
+    for name in names:
+        by_verb: dict[tuple[str, str], list[str]] = {}
+        for flow, message, key_expr in sorted(grants(name, key_prefix=key_prefix)):
+            by_verb.setdefault((flow, message), []).append(key_expr)
+        if not by_verb:
+            continue
+        ids = []
+        for (flow, message), key_exprs in by_verb.items():
+            ids.append(f"{name}-{flow}-{message}")
+            rules.append({"id": ids[-1], "messages": [message], "flows": [flow], "permission": "allow",
+                          "key_exprs": key_exprs})
+        subjects.append({"id": name, "cert_common_names": [name]})
+        policies.append({"id": f"{name}-policy", "rules": ids, "subjects": [name]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
 
 
 def router_config(*, cert_dir: Path, listen: Sequence[str], names: Sequence[str], key_prefix: str = "cvxnav") -> dict:

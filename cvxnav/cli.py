@@ -104,6 +104,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     try:
         code, result, restarts = run_pipeline(options=options, scenario=scenario)
+    except RunError as error:  # e.g. the robot id is already up on the network
+        raise CliError(str(error)) from None
     except PipelineError as error:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_TIMEOUT_OR_COLLISION
@@ -352,8 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--out", type=Path, default=Path("plan.json"), help="plan file to write")
     plan.set_defaults(handler=_cmd_plan)
 
-    from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES
-    from services.shell.zenoh_config import add_zenoh_arguments, endpoint_argument
+    from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES, check_prefix, check_robot_id
+    from services.shell.zenoh_config import add_zenoh_arguments, argument_type, endpoint_argument
+
+    robot_id, prefix = argument_type(check_robot_id), argument_type(check_prefix)
 
     run = commands.add_parser("run", help="the whole pipeline, each stage its own process, with the sim")
     run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
@@ -363,7 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="sim-time limit in seconds (default: from the scenario's tour length)")
     run.add_argument("--stages", type=Path, default=None,
                      help='JSON file swapping stages: {"smoother": "module:factory" | {"command": [...]}}')
-    run.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    run.add_argument("--robot-id", type=robot_id, default=DEFAULT_ROBOT_ID,
+                     help="key prefix is cvxnav/<robot-id>; refused if a pipeline with this id is up at --connect")
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -397,8 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
     service = commands.add_parser("service", help="run one stage as a standalone process")
     service.add_argument("name", choices=list(PROCESSES), help="the stage to run (monitor: the rerun sink)")
     service.add_argument("--scenario", type=Path, default=None, help="scenario file (default: the paper's)")
-    service.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
-    service.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    service.add_argument("--robot-id", type=robot_id, default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    service.add_argument("--prefix", type=prefix, default=None, help="key prefix (overrides --robot-id)")
     service.add_argument("--entry", default=None, metavar="MODULE:FACTORY",
                          help="an alternative implementation: a factory taking the scenario")
     service.add_argument("--max-payload-bytes", type=_positive_int, default=None, metavar="N",
@@ -424,8 +429,8 @@ def build_parser() -> argparse.ArgumentParser:
     service.set_defaults(handler=_cmd_service)
 
     status = commands.add_parser("status", help="which stages are alive, their last status, message rates")
-    status.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
-    status.add_argument("--prefix", default=None, help="key prefix (overrides --robot-id)")
+    status.add_argument("--robot-id", type=robot_id, default=DEFAULT_ROBOT_ID, help="key prefix is cvxnav/<robot-id>")
+    status.add_argument("--prefix", type=prefix, default=None, help="key prefix (overrides --robot-id)")
     status.add_argument("--window-s", type=_positive_float, default=2.0, help="how long to measure rates")
     status.add_argument("--json", action="store_true", help="print JSON instead of a table")
     add_zenoh_arguments(status)

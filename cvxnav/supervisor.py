@@ -11,7 +11,8 @@ SIGTERM, then SIGKILL after a grace period.
 Each child's Zenoh settings are a config file the supervisor writes into the run's log directory.
 `connect` endpoints are added to every process of the run (a router there relays the whole run to
 `cvxnav status` or a monitor elsewhere), `listen` endpoints to the supervisor's own session (a client
-connecting there hears the whole mesh).
+connecting there hears the whole mesh). A run that connects somewhere is refused before it starts when a
+pipeline with its robot id is already up there (its liveliness tokens are visible): two would cross-talk.
 
 With `tls_dir` the run is the secure deployment on one machine: the supervisor's session is the
 router of `cvxnav certs` (mutual TLS, access control by certificate name) on a free loopback port
@@ -73,7 +74,7 @@ from schemas.messages import DecodeError, RobotState, SmoothPath, decode
 from schemas.scenario import Scenario
 from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, ROS2, SIM, STAGES, default_prefix, key
 from services.ros2.bridge import BridgeConfig
-from services.shell.peers import wait_for_stages
+from services.shell.peers import alive_stages, wait_for_stages
 from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
@@ -193,6 +194,32 @@ def prepare_tls(options: RunOptions) -> bool:
         raise RunError(f"{options.tls_dir}: missing {', '.join(path.name for path in missing)} "
                        f"(make them with: cvxnav certs --out {options.tls_dir})")
     return created
+
+
+# Asked twice, this far apart, whether the robot id is up where the run connects: a peer may still be
+# linking to the others' processes when the first answer comes.
+IN_USE_ASKS_S = 0.3
+
+
+def refuse_a_robot_id_in_use(options: RunOptions) -> None:
+    """RunError if a pipeline under this robot id is already up at the `connect` endpoints (its tokens are
+    visible there): a second one would read and answer the first one's keys."""
+    if not options.connect:
+        return  # the run's own mesh on fresh loopback ports: no one else is in it yet
+    prefix = default_prefix(robot_id=options.robot_id)
+    try:
+        opened = zenoh.open(config_from_doc(endpoints_config(connect=list(options.connect))))
+    except zenoh.ZError as error:
+        raise RunError(f"cannot open a Zenoh session to {', '.join(options.connect)}: {zenoh_reason(error)}") from None
+    with opened as session:
+        alive = alive_stages(session, prefix=prefix)
+        if not alive:
+            time.sleep(IN_USE_ASKS_S)
+            alive = alive_stages(session, prefix=prefix)
+    if alive:
+        raise RunError(f"robot id {options.robot_id!r} is already up at {', '.join(options.connect)} (alive under "
+                       f"{prefix}: {', '.join(sorted(alive))}): a second pipeline would cross-talk with it; "
+                       f"choose another --robot-id")
 
 
 def plain_layout(options: RunOptions) -> tuple[dict, dict[str, dict]]:
@@ -365,9 +392,13 @@ def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: fl
 
 
 def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFile | None, int]:
-    """Run every stage as a process until the sim ends; the exit code, the run file and the restarts."""
+    """Run every stage as a process until the sim ends; the exit code, the run file and the restarts.
+
+    Raises RunError, before starting anything, if the robot id is already up where the run connects.
+    """
     from sim.core import default_time_limit_s
 
+    refuse_a_robot_id_in_use(options)
     supervisor = Supervisor(options=options, scenario=scenario)
     progress = _Progress()
     time_limit_s = options.time_limit_s or default_time_limit_s(scenario)

@@ -33,6 +33,7 @@ returns the core.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal, Mapping
@@ -40,6 +41,9 @@ from typing import Literal, Mapping
 from schemas.messages import Clusters, Ellipsoids, Goals, Map, Message, RawPath, RobotState, Scan, SmoothPath, World
 
 DEFAULT_ROBOT_ID = "robot1"
+# A robot id is a name: one key chunk, never a pattern (`*` in a key would reach every robot's keys).
+ROBOT_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]+")
+PREFIX_PATTERN = re.compile(r"[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*")
 
 Role = Literal["stage", "source", "sink"]
 
@@ -130,8 +134,23 @@ STAGES: Mapping[str, StageSpec] = MappingProxyType({spec.name: spec for spec in 
 PROCESSES: Mapping[str, StageSpec] = MappingProxyType({**STAGES, ROS2.name: ROS2, MONITOR.name: MONITOR})
 
 
+def check_robot_id(robot_id: str) -> str:
+    """`robot_id` if it is a name (letters, digits, `_`, `-`), else ValueError saying so."""
+    if not ROBOT_ID_PATTERN.fullmatch(robot_id):
+        raise ValueError(f"must be letters, digits, '_' or '-' (a name, not a key pattern), got {robot_id!r}")
+    return robot_id
+
+
+def check_prefix(prefix: str) -> str:
+    """`prefix` if it is a key of such names joined by `/`, else ValueError saying so."""
+    if not PREFIX_PATTERN.fullmatch(prefix):
+        raise ValueError(f"must be names of letters, digits, '_' or '-' joined by '/' (a key, not a pattern), "
+                         f"got {prefix!r}")
+    return prefix
+
+
 def default_prefix(*, robot_id: str = DEFAULT_ROBOT_ID) -> str:
-    return f"cvxnav/{robot_id}"
+    return f"cvxnav/{check_robot_id(robot_id)}"
 
 
 def key(prefix: str, topic: str) -> str:

@@ -9,6 +9,7 @@ same question about the unit circle.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from itertools import chain
@@ -448,3 +449,65 @@ def resample_polyline(points: ArrayLike, *, max_spacing_m: float) -> FloatArray:
         t = np.arange(1, n + 1)[:, None] / n
         out.append(p + t * (q - p))
     return np.concatenate(out)
+
+
+class PointMemory:
+    """Scan hits accumulated in the map frame, one point per occupied `voxel_m` grid cell.
+
+    Obstacles seen earlier stay remembered while they are out of the sensor's view (the sensor only
+    sees 180° ahead; the planner must not forget what is behind or beside it). The sensing stage
+    clusters what it remembers; the path guard (`services.drive.guard`) keeps the car's own hits the same way, so
+    with the same scans it remembers the very points the ellipses were fitted to.
+
+    Each voxel keeps the first point that fell in it, so re-observing a static obstacle does not move
+    the remembered points and the downstream clustering and ellipse fits stay still. Re-observing a
+    voxel refreshes its age. Beyond `max_points` voxels the least recently observed ones are dropped
+    first: memory is bounded, and what is forgotten is what has been out of view longest.
+    """
+
+    def __init__(self, *, voxel_m: float = 0.05, max_points: int = 50_000) -> None:
+        if not (np.isfinite(voxel_m) and voxel_m > 0.0):
+            raise ValueError(f"voxel_m must be finite and positive, got {voxel_m!r}")
+        if int(max_points) != max_points or max_points < 1:
+            raise ValueError(f"max_points must be a positive integer, got {max_points!r}")
+        self.voxel_m = float(voxel_m)
+        self.max_points = int(max_points)
+        self._voxels: OrderedDict[tuple[int, int], tuple[float, float]] = OrderedDict()
+        self.forgotten = 0  # voxels dropped so far to stay within max_points
+
+
+    def __len__(self) -> int:
+        return len(self._voxels)
+
+    def add(self, points: ArrayLike) -> int:
+        """Remember map-frame points (k, 2); returns how many voxels were newly occupied.
+
+        Non-finite rows (e.g. misses encoded as inf) are ignored.
+        """
+        return len(self.remember(points))
+
+    def remember(self, points: ArrayLike) -> FloatArray:
+        """Remember map-frame points (k, 2) as `add` does; returns the points that newly occupied a voxel."""
+        z = np.asarray(points, dtype=float).reshape(-1, 2)
+        z = z[np.all(np.isfinite(z), axis=1)]
+        keys = np.floor(z / self.voxel_m).astype(np.int64)
+        added = []
+        for key, point in zip(map(tuple, keys.tolist()), z.tolist()):
+            if key in self._voxels:
+                self._voxels.move_to_end(key)
+            else:
+                self._voxels[key] = (point[0], point[1])
+                added.append(point)
+        while len(self._voxels) > self.max_points:
+            self._voxels.popitem(last=False)
+            self.forgotten += 1
+        return np.array(added, dtype=float).reshape(-1, 2)
+
+    def points(self) -> FloatArray:
+        """The remembered points (n, 2), least recently observed first."""
+        if not self._voxels:
+            return np.zeros((0, 2))
+        return np.array(list(self._voxels.values()), dtype=float)
+
+    def clear(self) -> None:
+        self._voxels.clear()

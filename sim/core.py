@@ -101,7 +101,7 @@ class SimCore:
         self.backouts = 0  # started for the current goal
         self.backout_m = self.config.backout_m or float(scenario.robot.length) + self.limits.min_turn_radius_m
         self.plan_ids: list[int] = []
-        self.guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
+        self.guard = PathGuard.from_scenario(scenario)
         self.missing: set[str] = set()  # pipeline stages whose liveliness token is gone
         self.resume_seq = 0  # answers to earlier scans are not taken: they predate a stage's loss or a back-out
         self.scan_xy: dict[int, tuple[float, float]] = {}  # recent scans' positions, by seq
@@ -146,12 +146,15 @@ class SimCore:
     def sense(self) -> tuple[RobotState, Scan]:
         """The state and the scan of this sensor tick; both carry the tick's seq and sim time.
 
-        While the sensing stage is down its hits are kept (one per 1 cm cell); once it is back they are
-        sent with every scan until the pipeline answers one of those scans.
+        The guard remembers the hits, and the car brakes if the path it drives now passes too close to
+        one. While the sensing stage is down its hits are kept (one per 1 cm cell); once it is back they
+        are sent with every scan until the pipeline answers one of those scans.
         """
         s = self.state
         hits = self.sensor.scan(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad,
                                 obstacles=self.world.ray_targets, rng=self.rng)
+        self.guard.sense(hits)
+        self._recheck("its own scan")
         points = [(float(x), float(y)) for x, y in hits]
         if "sensing" in self.missing:
             self._keep_unheard(points)
@@ -192,20 +195,25 @@ class SimCore:
         Returns why the path was dropped (the car brakes), None when it is still clear or there is none.
         """
         self.guard.know(ellipsoids)
+        return self._recheck("newer obstacles")
+
+    def _recheck(self, what: str) -> str | None:
+        """Check the rest of the path being driven against what the guard now knows; brake if it fails."""
         if self.path is None:
             return None
         position = (self.state.x_m, self.state.y_m)
         reason = self.guard.check(ahead(self.path, position=position), start=position)
         if reason is not None:
-            self.reject(f"newer obstacles: {reason}")
+            self.reject(f"{what}: {reason}")
         return reason
 
     def accept(self, answer: SmoothPath) -> str | None:
         """Take the pipeline's newest answer: a path to follow, or its verdict that there is none.
 
         An answer is ignored while a stage is down or when it answers a scan sent before the loss. A
-        path that enters a known ellipse, or starts against the car's heading, is not driven (the car
-        brakes); the reason is returned.
+        path the guard refuses (off the map, too close to a hit of the car's own scans, into a known
+        ellipse), or that starts against the car's heading, is not driven (the car brakes); the reason
+        is returned.
         """
         if self.missing or answer.scan_seq < self.resume_seq or self.backout is not None:
             return None

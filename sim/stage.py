@@ -2,19 +2,25 @@
 
 - lockstep (default): at each sensor tick the sim publishes the state and the scan, then waits (up to
   `answer_timeout_s` of wall time) for the pipeline's answer to that scan before integrating the next
-  sensor period. The answer is the SmoothPath carrying the scan's `scan_seq` (status ok or no_path), or
-  an error status of any stage for that scan: then no path could be verified against what the car now
-  knows, and the car brakes rather than drive on a path checked only against older obstacles.
-  Sim time then depends only on the scenario and the seed, so two runs give the same trajectory, and a
-  run goes as fast as the pipeline answers.
+  sensor period. The answer is the SmoothPath carrying the scan's `scan_seq` that the car drives on, or
+  the pipeline's no_path verdict for it. An error status of a pipeline stage for that scan, or an answer
+  the car will not drive on (refused by the guard, or planned for a goal already passed), settles the
+  scan only when nothing better for it arrives within `VERDICT_WAIT_S`: then no path could be verified
+  against what the car now knows, and the car brakes rather than drive on a path checked only against
+  older obstacles. So a forged error or path, sent the moment the scan goes out, never pre-empts the
+  pipeline's real answer. Sim time then depends only on the scenario and the seed, so two runs give the
+  same trajectory, and a run goes as fast as the pipeline answers.
 - realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
   used whenever it arrives, as on a real robot.
 
 The shell hands the core its inputs (paths, ellipses), the pipeline stages' liveliness and every
-stage's status as they arrive; the core keeps them and acts on them when it ticks, in the order one
-pass of its loop always takes: liveliness and ellipses, then the path, then the statuses. In lockstep
-it asks for a tick as soon as anything arrived (or at the answer's deadline, or when the scan is due
-again); in realtime once per integration step of the wall clock.
+stage's status as they arrive (a status counts only on the key of the pipeline stage it names: see
+docs/security.md for who can put there); the core keeps them and acts on them when it ticks, in the
+order one pass of its loop always takes: liveliness and ellipses, then the paths, then the statuses.
+In lockstep it asks for a tick as soon as anything arrived (or at the answer's deadline, when a doubt
+settles, or when the scan is due again); in realtime once per integration step of the wall clock,
+where a stage's error brakes the car once VERDICT_WAIT_S has passed with no answer for that scan or a
+later one.
 
 A smooth_path it cannot use (answering a scan it never sent) is rejected, and reported by the shell
 on ``<prefix>/status/sim`` with a one-line reason, like any stage's rejected input; so is a path it
@@ -27,10 +33,11 @@ will not drive on (a `Refusal`). Two watchdogs:
   restart costs the car the restart time, never the answer timeout. Scan hits taken while the sensing
   stage was down ride along with every scan until the pipeline answers one, so the restarted stage's
   memory misses nothing the car saw (its point memory dedupes them).
-- the path check (`services.drive.guard`): every path, and the path being driven whenever newer
-  ellipses arrive, is checked against the newest grown ellipses from the ellipsoid stage; a path that
-  enters one is not driven. For a received path the sim says why on its status key; a driven path that newer ellipses
-  cross is routine (the planner replans on the same ellipses), so it is only logged.
+- the path check (`services.drive.guard`): every path, and the path being driven whenever a scan or
+  newer ellipses arrive, is checked against the map's bounds, the car's own scan hits and the newest
+  grown ellipses from the ellipsoid stage; a path that fails any is not driven. For a received path the
+  sim says why on its status key; a driven path that newer obstacles cross is routine (the planner
+  replans on them), so it is only logged.
 """
 
 from __future__ import annotations
@@ -39,7 +46,8 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 from pydantic import BaseModel
 
@@ -61,6 +69,11 @@ REJOIN_RESEND_S = 5.0
 # Lockstep: the ellipses of a scan come straight from their stage, its path two stages later; a path is
 # held this long at most for them, so it is checked against the same obstacles in every run.
 ELLIPSOIDS_WAIT_S = 1.0
+# A stage's error for a scan, or an answer the car will not drive on, counts only if no answer it drives
+# on (or the pipeline's no_path verdict) arrives within this long: a forged one sent the moment the scan
+# goes out must not pre-empt the real answer, which the pipeline's latency puts well inside it.
+VERDICT_WAIT_S = 1.0
+ANSWERS_KEPT = 64  # answers to one scan held at most (a flood of forged ones cannot grow the sim)
 
 
 @dataclass
@@ -72,8 +85,10 @@ class _Waiting:
     started_s: float
     deadline_s: float
     resend_s: float
-    held: SmoothPath | None = None  # its answer, waiting for the scan's ellipses
+    held: list[SmoothPath] = field(default_factory=list)  # its answers, waiting for the scan's ellipses
     held_until_s: float = math.inf
+    doubt: str | None = None  # why the car would brake if nothing better arrives (None: keep the path)
+    doubt_until_s: float = math.inf  # when that settles the scan
 
 
 class SimStage:
@@ -93,13 +108,15 @@ class SimStage:
         self.published_at: dict[int, float] = {}  # scan seq -> latency_clock when it was (last) sensed
         self.stamps: dict[int, float] = {}  # scan seq -> its sim stamp
         self.latencies_ms: list[float] = []
-        self.rejected: dict[float, str] = {}  # scan stamp -> a stage's reason it has no path for it
+        self.rejected: dict[float, tuple[str, float]] = {}  # scan stamp -> (a stage's reason it has no path
+        # for it, clock time it was heard)
+        self._settled_stamp_s = -math.inf  # realtime: the newest scan an answer was driven on (or no_path) for
         self.back_at_s = -math.inf  # clock time a stage last came back
         self._started_s: float | None = None  # the first tick (the world goes out)
         self._running_s: float | None = None  # the loop started (every stage up, or the wait over)
         self._changes: list[tuple[str, bool]] = []  # liveliness changes not yet acted on
         self._ellipsoids: Ellipsoids | None = None  # the newest not yet acted on
-        self._path: SmoothPath | None = None  # likewise
+        self._paths: deque[SmoothPath] = deque(maxlen=ANSWERS_KEPT)  # answers not yet acted on, in arrival order
         self._heard = False  # anything arrived since the last tick
         self._waiting: _Waiting | None = None
         self._next_s = 0.0
@@ -118,8 +135,7 @@ class SimStage:
             sent = self.published_at.pop(message.scan_seq, None)
             if sent is not None:
                 self.latencies_ms.append((self.latency_clock() - sent) * 1e3)
-            if self._path is None or message.scan_seq >= self._path.scan_seq:
-                self._path = message
+            self._paths.append(message)
         elif isinstance(message, Ellipsoids):
             # The guard keeps the newest set by scan; a forged one numbered past every real scan would
             # otherwise blind it to the real obstacles for the rest of the run.
@@ -140,8 +156,10 @@ class SimStage:
         return []
 
     def hear_status(self, *, stage: str, status: StageStatus, now_s: float) -> Outputs:
-        if status.state == "error" and status.stage != SIM.name and status.input_stamp_s is not None:
-            self.rejected[status.input_stamp_s] = f"{status.stage}: {status.reason}"
+        """A pipeline stage's error for a scan; a status on another key, or naming another stage, counts for nothing."""
+        if (status.state == "error" and stage in SIM.watches and status.stage == stage
+                and status.input_stamp_s is not None):
+            self.rejected.setdefault(status.input_stamp_s, (f"{stage}: {status.reason}", now_s))
             self._heard = True
         return []
 
@@ -200,39 +218,47 @@ class SimStage:
                                          deadline_s=now_s + self.config.answer_timeout_s, resend_s=now_s + RESEND_S)
             wait = self._waiting
             if now_s >= wait.deadline_s:
-                if wait.held is not None:
-                    out += self._take(wait.held)
-                    self._end_scan(now_s, answered=True, stalled=False)
-                else:
-                    self._end_scan(now_s, answered=False, stalled=False)
+                taken, settled = self._take_held(wait, now_s)
+                out += taken
+                if not settled and wait.doubt is not None:
+                    core.no_plan(wait.doubt)
+                self._end_scan(now_s, answered=settled or wait.doubt_until_s < math.inf, stalled=False)
                 continue
             self._watch(now_s)
+            answers = [answer for answer in self._paths if answer.scan_seq == wait.seq]  # older ones: too late
+            self._paths.clear()
+            if answers and not wait.held:
+                wait.held_until_s = min(wait.deadline_s, now_s + ELLIPSOIDS_WAIT_S)
+            wait.held = (wait.held + answers)[-ANSWERS_KEPT:]
             if core.missing:  # no answer will come: brake on the wall clock until the stage is back
-                if wait.held is not None:
-                    out += self._take(wait.held)
-                if self._end_scan(now_s, answered=wait.held is not None, stalled=True):
+                answered = bool(wait.held)
+                out += self._take_held(wait, now_s)[0]
+                if self._end_scan(now_s, answered=answered, stalled=True):
                     return out
                 continue
-            if wait.held is not None:
+            if wait.held:
                 if core.guard.scan_seq < wait.seq and now_s < wait.held_until_s:
                     self._next_s = min(wait.held_until_s, wait.deadline_s)
                     return out
-                out += self._take(wait.held)
-                self._end_scan(now_s, answered=True, stalled=False)
-                continue
-            answer, self._path = self._path, None
-            if answer is not None and answer.scan_seq == wait.seq:
-                wait.held, wait.held_until_s = answer, min(wait.deadline_s, now_s + ELLIPSOIDS_WAIT_S)
-                continue
+                taken, settled = self._take_held(wait, now_s)
+                out += taken
+                if settled:
+                    self._end_scan(now_s, answered=True, stalled=False)
+                    continue
             reasons = [reason for stamp_s, reason in self.rejected.items() if abs(stamp_s - wait.stamp_s) <= 1e-9]
-            if reasons:
-                core.no_plan(reasons[0])  # no verified path for what the car now knows: brake
+            if reasons and wait.doubt_until_s == math.inf:
+                (reason, heard_s), = reasons[:1]
+                wait.doubt, wait.doubt_until_s = reason, heard_s + VERDICT_WAIT_S
+            if now_s >= wait.doubt_until_s:
+                if wait.doubt is not None:
+                    core.no_plan(wait.doubt)  # no verified path for what the car now knows: brake
                 self._end_scan(now_s, answered=True, stalled=False)
                 continue
-            if (wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S) and now_s >= wait.resend_s:
+            resending = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S
+            if resending and now_s >= wait.resend_s:
                 out += self._publish(now_s)  # routes to fresh (or restarted) peers may not have been up for it
                 wait.resend_s = now_s + RESEND_S
-            self._next_s = min(wait.deadline_s, wait.resend_s)
+            self._next_s = min(wait.deadline_s, wait.doubt_until_s, wait.resend_s if resending else math.inf)
             return out
 
     def _end_scan(self, now_s: float, *, answered: bool, stalled: bool) -> bool:
@@ -261,17 +287,23 @@ class SimStage:
             return []
         out = self._publish(now_s) if core.scan_due else []
         self._watch(now_s)
-        answer, self._path = self._path, None
-        if answer is not None:
-            out += self._take(answer)
+        answers = sorted(self._paths, key=lambda answer: answer.scan_seq)  # stable: the newest scan's taken last
+        self._paths.clear()
+        for answer in answers:
+            taken, settled = self._settle(answer)
+            out += taken
+            if settled:
+                self._settled_stamp_s = max(self._settled_stamp_s, self.stamps.get(answer.scan_seq, -math.inf))
         published = {stamp for seq, stamp in self.stamps.items() if seq >= core.resume_seq}
-        concerning = [reason for stamp, reason in self.rejected.items() if stamp in published]
-        if concerning:
+        self.rejected = {stamp: heard for stamp, heard in self.rejected.items()
+                         if stamp in published and stamp > self._settled_stamp_s}
+        due = [reason for reason, heard_s in self.rejected.values() if now_s >= heard_s + VERDICT_WAIT_S]
+        if due:
             # A stage could not verify a path for a scan the car sent (since a stage's loss or its last
-            # back-out): brake until a verified one arrives. Errors about anything else (a malformed
-            # message on a key) leave the plan in force.
-            core.no_plan(concerning[0])
-        self.rejected.clear()
+            # back-out), and no answer for it or a later scan came since: brake until a verified one
+            # arrives. Errors about anything else (a malformed message on a key) leave the plan in force.
+            core.no_plan(due[0])
+            self.rejected.clear()
         self._next_s = self._running_s + (core.step_index + 1) * self.config.dt_s
         return out
 
@@ -302,12 +334,31 @@ class SimStage:
             if dropped is not None:  # the planner replans on the same ellipses: routine, not an error
                 logger.info("newer obstacles cross the path being driven; braking until the replan: %s", dropped)
 
-    def _take(self, answer: SmoothPath) -> Outputs:
-        """Hand the core an answer; if it will not drive on it, refuse it on the sim's status key."""
+    def _take_held(self, wait: _Waiting, now_s: float) -> tuple[Outputs, bool]:
+        """Lockstep: hand the core the scan's answers in arrival order until one settles the scan; one
+        refused (the car brakes) or planned for a goal already passed (it keeps its path) before that is
+        the doubt, which settles the scan only if nothing better arrives within VERDICT_WAIT_S."""
+        out: Outputs = []
+        held, wait.held = wait.held, []
+        for answer in held:
+            taken, settled = self._settle(answer)
+            out += taken
+            if settled:
+                return out, True
+            if wait.doubt_until_s == math.inf:
+                wait.doubt = self.core.no_path_reason if taken else None
+                wait.doubt_until_s = now_s + VERDICT_WAIT_S
+        return out, False
+
+    def _settle(self, answer: SmoothPath) -> tuple[Outputs, bool]:
+        """Hand the core an answer; if it will not drive on it, refuse it on the sim's status key. Whether the
+        answer settles its scan: the car drives on it (the core took a new path), or it is no_path."""
+        before = self.core.path
         reason = self.core.accept(answer)
-        if reason is None:
-            return []
-        return [("smooth_path", Refusal(f"plan {answer.plan_id} for scan {answer.scan_seq} not driven: {reason}"))]
+        if reason is not None:
+            return [("smooth_path", Refusal(f"plan {answer.plan_id} for scan {answer.scan_seq} not driven: "
+                                            f"{reason}"))], False
+        return [], answer.status == "no_path" or self.core.path is not before
 
     def _check_answers_a_sent_scan(self, scan_seq: int) -> None:
         if scan_seq not in self.stamps:

@@ -1,4 +1,5 @@
-"""Sessions for the TLS tests: an inbox that records what a subscriber hears, and the outsiders' configs.
+"""Sessions for the TLS tests: an inbox that records what a subscriber hears, the outsiders' configs, and
+what the wiring table allows each certificate, written out from the table independently of `cvxnav.certs`.
 
 Shared by tests/integration/test_tls.py (a bare TLS router) and tests/e2e/test_secure_run.py (a whole
 `cvxnav run --tls`): a client without a certificate, one presenting a certificate from another CA, and
@@ -13,8 +14,8 @@ from pathlib import Path
 
 import zenoh
 
-from cvxnav.certs import client_config
-from schemas.wiring import alive_key, every_key
+from cvxnav.certs import OPERATOR, client_config
+from schemas.wiring import PROCESSES, TOPICS, alive_key, every_key, key, publishers_of, status_key
 
 INTRUDER = "intruder"  # a name the certificates are issued for, but that access control does not list
 
@@ -72,3 +73,38 @@ def connect_outsiders(ours: Path, theirs: Path, endpoint: str, *, prefix: str,
                 session.liveliness().declare_subscriber(alive_key(prefix), inbox)
         outsiders[label] = (session, inbox)
     return outsiders
+
+
+def table_keys(prefix: str, names) -> dict[tuple[str, str], str]:
+    """The keys under ``prefix`` by what they are: ("topic", name) or ("status", the name of its process)."""
+    return {**{("topic", topic): key(prefix, topic) for topic in TOPICS},
+            **{("status", name): status_key(prefix, name) for name in names}}
+
+
+def may_put(name: str, what: tuple[str, str]) -> bool:
+    """Only the table's publishers put a topic (the sim, or for a ROS 2 robot the bridge); only a process puts its own status."""
+    kind, which = what
+    return name in publishers_of(which) if kind == "topic" else name == which and name in PROCESSES
+
+
+def may_read(name: str, what: tuple[str, str]) -> bool:
+    """The operator reads everything; a process reads the topics it subscribes to, and statuses if it hears them."""
+    if name == OPERATOR:
+        return True
+    spec = PROCESSES.get(name)
+    if spec is None:
+        return False
+    kind, which = what
+    return which in spec.subscribes if kind == "topic" else spec.hears_statuses
+
+
+def may_ask(name: str, what: tuple[str, str]) -> bool:
+    """Who may ask a latched topic's publisher for its last message: a process that subscribes to it."""
+    kind, which = what
+    return kind == "topic" and TOPICS[which].latched and name in PROCESSES and which in PROCESSES[name].subscribes
+
+
+def may_answer(name: str, what: tuple[str, str]) -> bool:
+    """Who may answer queries on a key: a latched topic's publisher, with its last message."""
+    kind, which = what
+    return kind == "topic" and TOPICS[which].latched and name in publishers_of(which)

@@ -18,11 +18,12 @@ Out: the pipeline's ``scan`` and ``state``, and ``/plan`` (nav_msgs/Path) and ``
   robot brakes with no verified path, on a plan older than `BridgeConfig.stale_after_s` (robot time),
   while a stage is down (then until a plan answers a scan sent after it is back), when the odometry
   falls silent (`tick`), and after any rejected input, until the next verified plan.
-- Every path is checked before it is followed by the sim's guard (`services.drive.guard.PathGuard`,
-  the newest grown ellipses) from where the robot is, and re-checked when newer ellipses arrive. A
-  path waits (`held`) until the guard knows the ellipses of its own scan and of every scan received
-  `BridgeConfig.guard_window_s` before: a robot that has driven into view of an obstacle for that long
-  is not handed a path checked only against older ellipses.
+- Every path is checked before it is followed by the sim's guard (`services.drive.guard.PathGuard`:
+  the map's bounds, the robot's own scan hits, the newest grown ellipses) from where the robot is, and
+  re-checked when a scan or newer ellipses arrive. A path waits (`held`) until the guard knows the
+  ellipses of its own scan and of every scan received `BridgeConfig.guard_window_s` before: a robot that
+  has driven into view of an obstacle for that long is not handed a path checked only against older
+  ellipses. The bounds and the robot's own hits need no message: no forged ellipse set can blind them.
 
 Rejected, with a one-line reason in `BridgeOutput.error` (the bridge brakes and carries on): a key
 whose type or hash is not the topic's, malformed CDR, a scan with more rays than the scenario's sensor,
@@ -169,7 +170,8 @@ class Ros2Bridge:
         self.keys = {name: config.key(name) for name, spec in BRIDGE_TOPICS.items() if spec.direction == "in"}
         self.tracker = PurePursuit.from_limits(config.limits)
         self.goals = GoalTracker(goals=config.goals, tolerance_m=config.goal_tolerance_m)
-        self.guard = PathGuard(inflation_m=config.inflation_m, keep_out_m=config.keep_out_m)
+        self.guard = PathGuard(inflation_m=config.inflation_m, keep_out_m=config.keep_out_m,
+                               bounds_min=config.reach.bounds_min, bounds_max=config.reach.bounds_max)
         self.frame_id: str | None = None  # the odometry's frame, latched from the first message
         self.odom: _Odometry | None = None  # the newest
         self.odometry: deque[_Odometry] = deque(maxlen=_ODOMETRY_KEPT)
@@ -272,6 +274,7 @@ class Ros2Bridge:
             self.waiting.popleft()
             if pose is not None:
                 out.pipeline += self._placed(scan, pose=pose)
+                out.ros += self._recheck("its own scan", now_s=now_s)
                 continue
             rejected = self._rejected("scan", f"scan: {self._unplaced(scan.stamp_s)}", now_s=now_s)
             rejected.pipeline = out.pipeline
@@ -310,6 +313,7 @@ class Ros2Bridge:
     def _placed(self, scan: _Waiting, *, pose: Pose2D) -> list[tuple[str, Scan | RobotState]]:
         message, stamp_s, received_s = scan.message, scan.stamp_s, scan.received_s
         hits = scan_hits(message, pose=pose, max_range_m=self.config.max_range_m)
+        self.guard.sense(hits)  # the path being followed is re-checked against them (`_place_scans`)
         seq = self.scan_seq
         self.scan_seq += 1
         self.scans[seq] = _ScanRecord(stamp=message.header.stamp, stamp_s=stamp_s, received_s=received_s)
@@ -380,15 +384,19 @@ class Ros2Bridge:
         except StageInputError as error:
             return BridgeOutput(error=f"ellipsoids: {error}", refused="ellipsoids")
         self.guard.know(message)
-        braked = []
-        if self.path is not None and self.odom is not None:
-            position = (self.odom.pose.x_m, self.odom.pose.y_m)
-            reason = self.guard.check(ahead(self.path, position=position), start=position)
-            if reason is not None:  # routine: the planner replans on the same ellipses
-                braked = self._brake(f"newer obstacles: {reason}", now_s=received_s)
+        braked = self._recheck("newer obstacles", now_s=received_s)  # routine: the planner replans on them
         out = self._release(received_s)
         out.ros = braked + out.ros
         return out
+
+    def _recheck(self, what: str, *, now_s: float) -> list[tuple[str, object]]:
+        """Brake if the rest of the path being followed fails the guard's check on what it now knows;
+        the zero command to publish, if it does."""
+        if self.path is None or self.odom is None:
+            return []
+        position = (self.odom.pose.x_m, self.odom.pose.y_m)
+        reason = self.guard.check(ahead(self.path, position=position), start=position)
+        return self._brake(f"{what}: {reason}", now_s=now_s) if reason is not None else []
 
     def take_path(self, message: SmoothPath, *, received_s: float) -> BridgeOutput:
         """The pipeline's answer to a scan: a path to follow (published on /plan), or a reason to brake.

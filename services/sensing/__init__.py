@@ -1,5 +1,6 @@
-"""Sensing stage: scan hits → remembered map-frame points → obstacle clusters (core in `core`)."""
+"""Sensing stage: scan hits → remembered map-frame points (`services.geometry.PointMemory`) → obstacle
+clusters (core in `core`)."""
 
-from services.sensing.core import PointMemory, cluster_points
+from services.sensing.core import cluster_points
 
-__all__ = ["PointMemory", "cluster_points"]
+__all__ = ["cluster_points"]

@@ -1,11 +1,9 @@
-"""Sensing stage core: remember scan hits in the map frame and split them into obstacle clusters.
+"""Sensing stage core: split the remembered scan hits (`services.geometry.PointMemory`) into obstacle clusters.
 
-Pure functions and one small accumulator; the Zenoh shell feeds it scans and publishes clusters.
+A pure function; the Zenoh shell feeds the stage scans and publishes clusters.
 """
 
 from __future__ import annotations
-
-from collections import OrderedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,56 +41,3 @@ def cluster_points(points: ArrayLike, *, link_m: float) -> list[FloatArray]:
     order = np.argsort(labels, kind="stable")
     bounds = np.flatnonzero(np.diff(labels[order])) + 1
     return [z[idx] for idx in np.split(order, bounds)]
-
-
-class PointMemory:
-    """Scan hits accumulated in the map frame, one point per occupied `voxel_m` grid cell.
-
-    Obstacles seen earlier stay remembered while they are out of the sensor's view (the sensor only
-    sees 180° ahead; the planner must not forget what is behind or beside it).
-
-    Each voxel keeps the first point that fell in it, so re-observing a static obstacle does not move
-    the remembered points and the downstream clustering and ellipse fits stay still. Re-observing a
-    voxel refreshes its age. Beyond `max_points` voxels the least recently observed ones are dropped
-    first: memory is bounded, and what is forgotten is what has been out of view longest.
-    """
-
-    def __init__(self, *, voxel_m: float = 0.05, max_points: int = 50_000) -> None:
-        if not (np.isfinite(voxel_m) and voxel_m > 0.0):
-            raise ValueError(f"voxel_m must be finite and positive, got {voxel_m!r}")
-        if int(max_points) != max_points or max_points < 1:
-            raise ValueError(f"max_points must be a positive integer, got {max_points!r}")
-        self.voxel_m = float(voxel_m)
-        self.max_points = int(max_points)
-        self._voxels: OrderedDict[tuple[int, int], tuple[float, float]] = OrderedDict()
-
-    def __len__(self) -> int:
-        return len(self._voxels)
-
-    def add(self, points: ArrayLike) -> int:
-        """Remember map-frame points (k, 2); returns how many voxels were newly occupied.
-
-        Non-finite rows (e.g. misses encoded as inf) are ignored.
-        """
-        z = np.asarray(points, dtype=float).reshape(-1, 2)
-        z = z[np.all(np.isfinite(z), axis=1)]
-        keys = np.floor(z / self.voxel_m).astype(np.int64)
-        added = 0
-        for key, point in zip(map(tuple, keys.tolist()), z.tolist()):
-            if key in self._voxels:
-                self._voxels.move_to_end(key)
-            else:
-                self._voxels[key] = (point[0], point[1])
-                added += 1
-        while len(self._voxels) > self.max_points:
-            self._voxels.popitem(last=False)
-        return added
-
-    def points(self) -> FloatArray:
-        """The remembered points (n, 2), least recently observed first."""
-        if not self._voxels:
-            return np.zeros((0, 2))
-        return np.array(list(self._voxels.values()), dtype=float)
-
-    def clear(self) -> None:
-        self._voxels.clear()

@@ -27,8 +27,9 @@ from schemas.messages import ClusterMsg, Clusters, Scan
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError, StateError
 from services.convert import answer_header
+from services.geometry import PointMemory
 from services.limits import MAX_SENSED_POINTS, Reach, check_count
-from services.sensing.core import PointMemory, cluster_points
+from services.sensing.core import cluster_points
 
 RANGE_SLACK = 1.1  # a hit may be measured this factor beyond the sensor's range (noise)
 

@@ -11,7 +11,7 @@ import argparse
 import ipaddress
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -58,12 +58,18 @@ def check_endpoint(text: str) -> str:
     return text
 
 
-def endpoint_argument(text: str) -> str:
-    """`check_endpoint` as an argparse type: a bad endpoint is the usual one-line usage error (exit 2)."""
-    try:
-        return check_endpoint(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
+def argument_type(check: Callable[[str], str]) -> Callable[[str], str]:
+    """A check that raises ValueError as an argparse type: a bad value is the usual one-line usage error
+    (exit 2)."""
+    def parse(text: str) -> str:
+        try:
+            return check(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    return parse
+
+
+endpoint_argument = argument_type(check_endpoint)
 
 
 def zenoh_reason(error: Exception) -> str:

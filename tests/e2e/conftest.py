@@ -29,6 +29,7 @@ class LiveRun:
     process: subprocess.Popen
     session: zenoh.Session
     cwd: Path
+    endpoint: str  # where the run listens (others join its mesh there)
 
     def stage_pids(self) -> dict[str, int]:
         """The run's child processes by stage name (`python -m cvxnav service NAME ...`)."""
@@ -63,7 +64,7 @@ def _live_run(*args: str, cwd: Path, startup_s: float = 90.0) -> Iterator[LiveRu
                 missing = wait_for_stages(session, prefix=PREFIX, stages=tuple(missing), timeout_s=1.0)
             if missing:
                 pytest.fail(f"stages not up: {sorted(missing)}; {(cwd / 'run.log').read_text()[-2000:]}")
-            yield LiveRun(process=process, session=session, cwd=cwd)
+            yield LiveRun(process=process, session=session, cwd=cwd, endpoint=endpoint)
     finally:
         stop_processes([process], grace_s=10.0)
         log.close()

@@ -255,6 +255,22 @@ def test_a_malformed_endpoint_is_a_usage_error(args, tmp_path):
     assert proc.stderr.startswith(f"cvxnav {args[0]}: error: argument ")
 
 
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [(["run", "--robot-id", "*"], "--robot-id"), (["run", "--robot-id", "robot1/**"], "--robot-id"),
+     (["service", "sim", "--robot-id", "a b"], "--robot-id"), (["status", "--robot-id", ""], "--robot-id"),
+     (["status", "--prefix", "cvxnav/*"], "--prefix"), (["service", "planner", "--prefix", "cvxnav//r"], "--prefix")],
+    ids=["star", "slash-wildcard", "space", "empty", "prefix-star", "prefix-empty-chunk"],
+)
+def test_a_robot_id_is_a_name_not_a_key_pattern(args, option, capsys):
+    """`*` in a robot id was a wildcard whose stages read and answered every robot's keys."""
+    with pytest.raises(SystemExit) as exited:
+        main(args)
+    stderr = capsys.readouterr().err
+    assert exited.value.code == 2 and stderr.count("\n") == 1, stderr
+    assert stderr.startswith(f"cvxnav {args[0]}: error: argument {option}: must be ")
+
+
 def test_a_router_that_cannot_listen_is_one_line(tmp_path):
     proc, _ = _cvxnav("router", "--listen", "tcp/8.8.8.8:7447", cwd=tmp_path, tmp=tmp_path)
     assert proc.returncode == 2

@@ -15,7 +15,8 @@ from schemas.files import RunFile
 from schemas.scenario import bundled_scenario, load_scenario
 
 PAPER = bundled_scenario()
-RUN_WALL_LIMIT_S = 180.0
+# Only a guard against a hung run, never a speed target: a lockstep run's wall time follows the machine's load.
+RUN_WALL_LIMIT_S = 600.0
 
 
 def cvxnav_run(*args: str, cwd: Path, timeout_s: float = RUN_WALL_LIMIT_S) -> subprocess.CompletedProcess:

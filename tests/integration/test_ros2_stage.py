@@ -216,9 +216,10 @@ def test_the_bridge_is_a_ros_node_that_turns_the_robots_topics_into_the_pipeline
     assert (twist.linear.x, twist.angular.z) == (0.0, 0.0)
 
     # A scan becomes the pipeline's; the pipeline's verified path becomes /plan, stamped with the scan.
-    robot.put("scan", laser_scan([2.0, 2.0], t_s=100.05, angle_min=0.0, angle_increment=0.1))
+    # (A wall to the left of the path: the guard refuses a path into the robot's own hits.)
+    robot.put("scan", laser_scan([2.0, 2.0], t_s=100.05, angle_min=1.0, angle_increment=0.1))
     scan = robot.wait("scan")
-    angles = (math.pi / 4, math.pi / 4 + 0.1)
+    angles = (math.pi / 4 + 1.0, math.pi / 4 + 1.1)
     np.testing.assert_allclose(scan.points, [(2 * math.cos(a), 2 * math.sin(a)) for a in angles], atol=1e-6)
     plan, _, plan_key = scan_and_plan(robot, t_s=100.1)
     assert plan_key.startswith(f"{DOMAIN}/robot9/plan/nav_msgs::msg::dds_::Path_/RIHS01_")

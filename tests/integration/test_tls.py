@@ -3,6 +3,8 @@
 A router configured as `cvxnav certs` writes it; the pipeline's certificates talk (a real sensing
 stage process answers a scan), while a client without a certificate, one with a certificate from
 another CA, and one with a valid certificate whose name is not a stage get no message in or out.
+Every certificate then tries every verb on every key: exactly what the wiring table gives it gets
+through (`test_the_router_grants_exactly_the_wiring_tables_least_privilege`).
 """
 
 from __future__ import annotations
@@ -11,17 +13,35 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 import zenoh
-from tls_clients import INTRUDER, Inbox, connect_outsiders, open_session
+from tls_clients import (
+    INTRUDER,
+    Inbox,
+    connect_outsiders,
+    may_answer,
+    may_ask,
+    may_put,
+    may_read,
+    open_session,
+    table_keys,
+)
 
-from cvxnav.certs import client_config, pipeline_names, router_config, write_deployment
+from cvxnav.certs import OPERATOR, client_config, pipeline_names, router_config, write_deployment
 from cvxnav.supervisor import free_ports
 from schemas.messages import Clusters, Header, Pose2D, Scan, decode
-from schemas.wiring import default_prefix, every_key, key
+from schemas.wiring import (
+    MONITOR,
+    PROCESSES,
+    alive_key,
+    default_prefix,
+    key,
+    stage_of_alive_key,
+)
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0
@@ -57,7 +77,8 @@ def test_only_pipeline_certificates_exchange_messages(deployment, tmp_path):
     monitor_inbox = Inbox()
     with open_session(client_config(cert_dir=ours, name="monitor", connect=[endpoint])) as monitor, \
             open_session(client_config(cert_dir=ours, name="sim", connect=[endpoint])) as sim:
-        monitor.declare_subscriber(every_key(PREFIX), monitor_inbox)
+        for topic in MONITOR.subscribes:  # as the monitor's shell does: the wiring table's keys, each on its own
+            monitor.declare_subscriber(key(PREFIX, topic), monitor_inbox)
         outsiders = connect_outsiders(ours, theirs, endpoint, prefix=PREFIX)
         time.sleep(SETTLE_S)
         assert outsiders["valid certificate, name not allowed"][0] is not None, "a signed client gets a link"
@@ -108,3 +129,98 @@ def test_documented_configs_match_what_certs_writes():
     assert json.loads(router.get_json("transport/link/tls/enable_mtls")) is True
     stage = zenoh.Config.from_file(str(deploy / "zenoh-tls-stage.json5"))
     assert json.loads(stage.get_json("transport/link/tls/verify_name_on_connect")) is True
+
+
+def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment):
+    """Every certificate (the pipeline's, the monitor's, the operator's, a signed outsider's) puts,
+    deletes, subscribes, queries, answers queries, holds tokens, watches and asks tokens on every key
+    at once; what arrives is exactly what the table allows, and a refused query gets only its own
+    session's timeout."""
+    ours, _, endpoint = deployment
+    names = (*pipeline_names(), INTRUDER)
+    keys = table_keys(PREFIX, names)
+    lock = threading.Lock()
+    heard: dict[tuple, set[tuple[str, str]]] = {}  # (receiver, key) -> {(kind, sender)}
+    replies: dict[tuple, set[str]] = {}  # (asker, key) -> {"ok:<replier>" | "err:<payload>"}
+    tokens: dict[str, set[str]] = {}  # watcher -> names whose token it was sent
+
+    def on_sample(receiver: str, what: tuple[str, str]):
+        def callback(sample: zenoh.Sample) -> None:
+            with lock:
+                heard.setdefault((receiver, what), set()).add((str(sample.kind), sample.payload.to_bytes().decode()))
+        return callback
+
+    def on_reply(asker: str, what: tuple[str, str]):
+        def callback(reply: zenoh.Reply) -> None:
+            with lock:
+                replies.setdefault((asker, what), set()).add(
+                    f"ok:{reply.ok.payload.to_bytes().decode()}" if reply.ok is not None
+                    else f"err:{reply.err.payload.to_bytes().decode()}")
+        return callback
+
+    def on_token(watcher: str):
+        def callback(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                with lock:
+                    tokens.setdefault(watcher, set()).add(stage_of_alive_key(PREFIX, str(sample.key_expr)))
+        return callback
+
+    sessions = {name: open_session(client_config(cert_dir=ours, name=name, connect=[endpoint])) for name in names}
+    try:
+        publishers = {}  # declared, as the shell declares them: they send only towards subscribers they are told of
+        for name, session in sessions.items():
+            for what, key_expr in keys.items():
+                publishers[name, what] = session.declare_publisher(key_expr)
+                session.declare_subscriber(key_expr, on_sample(name, what))
+                session.declare_queryable(key_expr, lambda query, name=name: query.reply(query.key_expr, name))
+            session.liveliness().declare_subscriber(alive_key(PREFIX), on_token(name), history=True)
+        time.sleep(SETTLE_S)
+        for name, session in sessions.items():
+            for what, key_expr in keys.items():
+                publishers[name, what].put(name)
+                publishers[name, what].delete()
+                session.get(key_expr, on_reply(name, what), timeout=SETTLE_S)
+        # Tokens under every other name: none may reach anyone (a session sees its own locally).
+        foreign = [session.liveliness().declare_token(alive_key(PREFIX, other))
+                   for name, session in sessions.items() for other in names if other != name]
+        time.sleep(2 * SETTLE_S)
+        with lock:
+            assert {name: seen - (set(names) - {name}) for name, seen in tokens.items() if seen - (set(names) - {name})} \
+                == {}, "a token under another's name got through"
+        for token in foreign:
+            token.undeclare()
+        time.sleep(SETTLE_S)
+        with lock:
+            tokens.clear()
+        own = [session.liveliness().declare_token(alive_key(PREFIX, name)) for name, session in sessions.items()]
+        time.sleep(SETTLE_S)
+        asked = {name: {stage_of_alive_key(PREFIX, str(reply.ok.key_expr))
+                        for reply in session.liveliness().get(alive_key(PREFIX), timeout=SETTLE_S) if reply.ok is not None}
+                 for name, session in sessions.items()}
+        with lock:
+            watched = {name: tokens.get(name, set()) for name in names}
+        for token in own:
+            token.undeclare()
+    finally:
+        for session in sessions.values():
+            session.close()
+
+    for receiver in names:
+        for what in keys:
+            got = heard.get((receiver, what), set()) - {("SampleKind.PUT", receiver), ("SampleKind.DELETE", "")}
+            expected = {("SampleKind.PUT", sender) for sender in names
+                        if sender != receiver and may_put(sender, what) and may_read(receiver, what)}
+            assert got == expected, f"{receiver} on {keys[what]}"
+            answers = replies.get((receiver, what), set()) - {f"ok:{receiver}"}  # its own queryable, locally
+            expected_answers = ({f"ok:{name}" for name in names if name != receiver and may_answer(name, what)}
+                                if may_ask(receiver, what) else set())
+            assert answers - {"err:Timeout"} == expected_answers, f"{receiver} asking {keys[what]}"
+    # Deletes: nobody may delete, so none arrives from another session (their payload is empty).
+    # Tokens: each process's own, to those that watch (the sim) or ask (the operator), and nobody else's.
+    # (A watcher's own session answers its asking from the tokens it was sent.)
+    holders = set(PROCESSES)
+    for name in names:
+        watching = bool(getattr(PROCESSES.get(name), "watches", ()))
+        assert watched[name] - {name} == (holders - {name} if watching else set()), f"{name} watching tokens"
+        assert asked[name] - {name} == (holders - {name} if watching or name == OPERATOR else set()), \
+            f"{name} asking tokens"

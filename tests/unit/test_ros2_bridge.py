@@ -228,10 +228,12 @@ def known(bridge: Ros2Bridge, *, scan_seq: int, t_s: float, ellipses=()):
     return bridge.take_ellipsoids(message, received_s=t_s)
 
 
-def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float, ellipses=()):
-    """Odometry and a scan at ``t_s``, and the ellipsoid stage's answer to the scan."""
+def scan_at(bridge: Ros2Bridge, *, x: float, y: float, yaw: float, t_s: float, ellipses=(), ahead_rad: float = 1.5):
+    """Odometry and a scan at ``t_s`` of a wall 3 m away, `ahead_rad` to the left of the heading (the
+    default: beside the path), and the ellipsoid stage's answer to the scan."""
     put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=t_s), t_s=t_s)
-    output = put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=-0.1, angle_increment=0.1), t_s=t_s)
+    output = put(bridge, "scan", laser_scan([3.0, 3.0, 3.0], t_s=t_s, angle_min=ahead_rad - 0.1, angle_increment=0.1),
+                 t_s=t_s)
     known(bridge, scan_seq=output.pipeline[-1][1].header.seq, t_s=t_s, ellipses=ellipses)
     return output
 
@@ -302,6 +304,14 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
     scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.8)
     elsewhere = bridge.take_path(answer(bridge, straight_path(x=x, y=y + 2.0, yaw=yaw), scan_seq=4), received_s=20.9)
     assert elsewhere.error is None and decoded(elsewhere, "plan") == [] and bridge.path is None
+    # The robot's own hits hold the path, whatever the ellipses say: a wall it sensed ahead, an empty
+    # ellipse set answering that scan, a path to the goal through the wall; and a path off the map.
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=20.85, ahead_rad=0.0)
+    blind = bridge.take_path(answer(bridge, straight_path(x=x, y=y, yaw=yaw), scan_seq=5), received_s=20.9)
+    assert "from a hit of the car's own scans" in blind.error and decoded(blind, "plan") == []
+    off_the_map = [(x, y), (x + 1.0, y), (x + 1.0, y - 80.0), bridge.goals.goals[-1]]
+    away = bridge.take_path(answer(bridge, off_the_map, scan_seq=5), received_s=20.9)
+    assert "leaves the map" in away.error and bridge.path is None
     # An answer to a scan the bridge never sent is refused.
     assert "did not send" in bridge.take_path(answer(bridge, [(0.0, 0.0), (1.0, 0.0)], scan_seq=99),
                                               received_s=21.0).error
@@ -315,14 +325,15 @@ def test_a_path_waits_until_the_guard_knows_the_obstacles_of_every_scan_the_robo
     points = straight_path(x=x, y=y, yaw=yaw)
     bridge = heading_to_its_end(bridge, points)
     put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=0.0), t_s=0.0)
-    put(bridge, "scan", laser_scan([3.0], t_s=0.0, angle_min=0.0, angle_increment=0.0), t_s=0.0)
+    # A wall beside the path (its own hits would refuse a path into them whatever the ellipses say).
+    put(bridge, "scan", laser_scan([3.0], t_s=0.0, angle_min=1.5, angle_increment=0.0), t_s=0.0)
     held = bridge.take_path(answer(bridge, points, scan_seq=0), received_s=0.2)
     assert decoded(held, "plan") == [] and held.error is None  # its scan's ellipses are still on their way
     (plan,) = decoded(known(bridge, scan_seq=0, t_s=0.3), "plan")
     assert len(plan.poses) == len(points)
 
     put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=1.0), t_s=1.0)
-    put(bridge, "scan", laser_scan([3.0], t_s=1.0, angle_min=0.0, angle_increment=0.0), t_s=1.0)
+    put(bridge, "scan", laser_scan([3.0], t_s=1.0, angle_min=1.5, angle_increment=0.0), t_s=1.0)
     held = bridge.take_path(answer(bridge, points, scan_seq=0, plan_id=2), received_s=1.6)
     assert decoded(held, "plan") == [] and bridge.held is not None
     ellipse = EllipsoidMsg(A=((2.0, 0.0), (0.0, 2.0)), b=(-2.0 * (x + 3.0), -2.0 * y), group=0, cluster_id=3)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from services.sensing.core import PointMemory, cluster_points
+from services.geometry import PointMemory
+from services.sensing.core import cluster_points
 from sim.sensor import RangeSensor
 
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 from collections import deque
 
 import pytest
+from attacker import FORGED_PLAN, error_status, forge
 
 from cvxnav.bench.closed_loop import run_closed_loop
 from cvxnav.stages import load_factory
-from schemas.messages import Header, SmoothPath, StageStatus
+from schemas.messages import Header, Scan, SmoothPath
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
 from services.contract import Refusal, StageInputError
@@ -22,7 +23,8 @@ class Bus:
     """Every output handed to the wiring table's readers of its topic, in the order it was published."""
 
     def __init__(self, sim: SimStage) -> None:
-        self.cores = {SIM.name: sim, **{name: load_factory(STAGES[name].factory)(SCENARIO) for name in PIPELINE}}
+        scenario = sim.core.scenario
+        self.cores = {SIM.name: sim, **{name: load_factory(STAGES[name].factory)(scenario) for name in PIPELINE}}
         self.queue: deque = deque()
         self.refusals: list[str] = []
 
@@ -94,10 +96,93 @@ def test_an_answer_to_a_scan_it_never_sent_is_rejected():
                         points=[(0.0, 0.0), (1.0, 1.0)], max_curvature=0.0, min_level=2.0, plan_id=1)
     with pytest.raises(StageInputError, match="never sent"):
         sim.process(topic="smooth_path", message=forged, now_s=0.0)
-    error = StageStatus(header=Header(stamp_s=0.0, seq=0), stage="planner", state="error", reason="boom",
-                        input_key="k", input_stamp_s=0.0, processing_ms=1.0)
-    sim.hear_status(stage="planner", status=error, now_s=0.0)
-    assert sim.rejected == {0.0: "planner: boom"}
+
+
+def test_a_status_counts_only_on_the_key_of_the_pipeline_stage_it_names():
+    sim = SimStage.from_scenario(SCENARIO)
+    sim.hear_status(stage="monitor", status=error_status(stage="monitor", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="operator", status=error_status(stage="planner", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="smoother", status=error_status(stage="planner", stamp_s=0.0), now_s=0.0)
+    sim.hear_status(stage="sim", status=error_status(stage="sim", stamp_s=0.0), now_s=0.0)
+    assert sim.rejected == {}
+    sim.hear_status(stage="planner", status=error_status(stage="planner", stamp_s=0.0, reason="boom"), now_s=2.5)
+    assert sim.rejected == {0.0: ("planner: boom", 2.5)}
+
+
+# --------------------------------------------------------------------------- forged traffic (issue 27)
+
+def drive_under_attack(sim: SimStage, forge) -> Bus:
+    """`drive`, with an attacker who hears every scan and answers it at once with `forge(scan)`: messages
+    (delivered to the wiring table's readers, the planner as much as the sim) and statuses (to the sim,
+    on the key it names), all before the pipeline's answer, the sim acting on them first as the shell would.
+    Each publisher's messages still arrive in the order it sent them, as over Zenoh."""
+    bus, now_s = Bus(sim), 0.0
+    for name in PIPELINE:
+        sim.stage_alive(stage=name, alive=True, now_s=now_s)
+    scans: deque[Scan] = deque()
+
+    def tick() -> None:
+        outputs = sim.tick(now_s=now_s)
+        bus.publish(outputs, now_s=now_s)
+        scans.extend(message for topic, message in outputs if topic == "scan")
+
+    while not sim.done:
+        if scans:
+            messages, statuses = forge(scans.popleft())
+            for stage, status in statuses:
+                sim.hear_status(stage=stage, status=status, now_s=now_s)
+            honest, bus.queue = bus.queue, deque()
+            bus.publish(messages, now_s=now_s)
+            while bus.queue:  # the forged messages, and what the stages make of them
+                bus.deliver(now_s=now_s)
+            bus.queue = honest
+            if sim.next_tick_s(now_s=now_s) <= now_s:
+                tick()
+            continue
+        if bus.queue:
+            bus.deliver(now_s=now_s)
+            continue
+        now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        tick()
+    return bus
+
+
+def test_forged_empty_ellipses_and_forged_paths_never_move_the_car_into_a_wall_or_off_the_map():
+    """Every scan answered at once with no ellipses (to the sim and the planner alike) and a path into the
+    nearest thing the car sees, or off the map, in turn: the guard refuses each, and the pipeline's own
+    answers still take the car to both goals."""
+    sim = SimStage.from_scenario(SCENARIO)
+    bus = drive_under_attack(sim, lambda scan: forge(scan, with_status=False))
+    result = sim.result()
+    assert result.status == "reached" and result.goals_reached == len(SCENARIO.goals)
+    assert result.min_clearance >= SCENARIO.robot.safety_distance / 2.0  # the hard floor's promise
+    forged = [reason for reason in bus.refusals if f"plan {FORGED_PLAN} " in reason]
+    assert any("hit of the car's own scans" in reason for reason in forged)
+    assert any("leaves the map" in reason for reason in forged)
+    assert all("hit of the car's own scans" in reason or "leaves the map" in reason for reason in forged)
+
+
+def test_twenty_forged_error_statuses_change_nothing(shared_dir):
+    """The issue's 20 errors, one for each of the first 20 scans on the planner's key, naming it, heard
+    before the pipeline answers: the run is the honest one, to the sample."""
+    from schemas.scenario import load_scenario
+
+    scenario = load_scenario(shared_dir / "scenarios" / "wide-gap.json")
+    honest = SimStage.from_scenario(scenario)
+    drive(honest)
+    sent = []
+
+    def statuses_only(scan: Scan):
+        if len(sent) == 20:
+            return [], []
+        sent.append(scan.header.seq)
+        return [], forge(scan, with_status=True)[1]
+
+    attacked = SimStage.from_scenario(scenario)
+    drive_under_attack(attacked, statuses_only)
+    assert len(sent) == 20
+    assert attacked.result().status == honest.result().status == "reached"
+    assert attacked.result().trajectory == honest.result().trajectory
 
 
 def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():

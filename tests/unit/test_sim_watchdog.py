@@ -229,5 +229,5 @@ def test_stage_errors_for_every_scan_of_a_car_at_rest_end_the_run_instead_of_wai
 def test_a_path_that_starts_against_the_heading_is_not_driven():
     core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
     core.sense()
-    reason = core.accept(path(core, straight(0.0, -10.0)))
+    reason = core.accept(path(core, straight(0.0, -3.0)))
     assert reason == "the path starts against the car's heading" and core.path is None
