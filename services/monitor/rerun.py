@@ -36,18 +36,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import (
-    Clusters,
-    Ellipsoids,
-    Goals,
-    Map,
-    RawPath,
-    RobotState,
-    Scan,
-    SmoothPath,
-    StageStatus,
-    World,
-)
+from schemas.messages import Clusters, Ellipsoids, Goals, Map, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
 from schemas.scenario import Scenario
 from services.contract import Outputs
 from services.convert import grid_from_msg
