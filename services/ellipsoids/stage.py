@@ -18,10 +18,12 @@ A known map (``Map``, a robot's /map from the ROS 2 bridge) adds its walls: the 
 (`services.ellipsoids.grid_cover`, the cover `cvxnav plan` plans on a map with), fitted tile by tile
 as the robot comes near, and every grown ellipse of it within `EllipsoidsConfig.map_window_m` of the
 robot (the newest ``RobotState``) goes out with the sensed ones as one more cluster (`MAP_CLUSTER_ID`:
-the building is one obstacle, so the planner never takes the gap between two of its walls for a way
-between two obstacles; sensed ones closer to it than the robot's passage join its group). So the planner, the smoother and the path guard keep the margin from the map's
-walls as from sensed obstacles, with no change of theirs; beyond the window the plan is what it is
-beyond a scan's reach, replanned as the robot comes nearer. A new map replaces the cover.
+the building is one obstacle, so grouping examines only pairs of a wall and a sensed obstacle, and a
+sensed one closer to a wall than the robot's passage joins the walls' group). So the planner, the
+smoother and the path guard keep the margin from the map's walls as from sensed obstacles, with no
+change of theirs; beyond the window the plan is what it is beyond a scan's reach, replanned as the
+robot comes nearer. A new map replaces the cover; the ellipses sent are at most `MAX_ELLIPSES`, the
+walls nearest the robot first.
 """
 
 from __future__ import annotations
