@@ -134,6 +134,11 @@ class EllipsoidsStage:
             grid = grid_from_msg(message)
         except MapError as error:
             raise StageInputError(f"map: {error}") from None
+        reach = self.config.reach
+        lo, hi = grid.bounds()
+        if np.any(hi < reach.bounds_min - reach.margin_m) or np.any(lo > reach.bounds_max + reach.margin_m):
+            raise StageInputError(f"map: its extent ({lo[0]:.6g}, {lo[1]:.6g}) to ({hi[0]:.6g}, {hi[1]:.6g}) lies "
+                                  f"more than {reach.margin_m:g} m outside the map bounds")
         self._map_message = message
         self.map, self._map_fits, self._map_index = GridCover(grid, margin_m=self.config.inflation_m), {}, None
 

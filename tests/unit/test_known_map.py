@@ -11,6 +11,7 @@ import pytest
 from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, RobotState
 from schemas.occupancy import FREE, OccupancyGrid, load_map
 from schemas.scenario import load_scenario
+from services.contract import StageInputError
 from services.convert import ellipses_from_msgs, grid_to_msg
 from services.ellipsoids.stage import MAP_CLUSTER_ID, EllipsoidsStage
 from services.geometry import EllipseStack
@@ -105,3 +106,14 @@ def test_the_plan_on_a_known_map_keeps_the_margin_from_its_walls(scenario, depot
     straight = np.linspace((START.x_m, START.y_m), GOAL, 200)
     assert depot.clearance(straight).min() == 0.0  # the way straight there runs into the shelves
     assert depot.clearance(path).min() >= scenario.inflation_m
+
+
+def test_a_map_off_the_scenarios_bounds_is_refused_and_the_one_held_stays(scenario, depot) -> None:
+    stage = stage_of(scenario)
+    ellipsoids_with_map(stage, depot)
+    cover = stage.map
+    far = OccupancyGrid.from_mask(np.ones((4, 4), dtype=bool), resolution_m=0.5, origin=(1e4, 0.0, 0.0))
+    with pytest.raises(StageInputError, match=r"map: its extent \(10000, 0\) to \(10002, 2\) lies more than 10 m "
+                                               r"outside the map bounds"):
+        stage.process(topic="map", message=grid_to_msg(far, header=header(1)), now_s=0.0)
+    assert stage.map is cover
