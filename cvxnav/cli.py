@@ -7,7 +7,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cvxnav.exits import EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_NO_PATH, EXIT_OK, EXIT_TIMEOUT_OR_COLLISION, CliError
+from cvxnav.exits import (EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_INTERRUPTED, EXIT_NO_PATH, EXIT_OK,
+                          EXIT_TIMEOUT_OR_COLLISION, CliError)
 
 
 def _load(scenario: Path | None):
@@ -53,6 +54,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
     from services.monitor.rerun import ViewerError
     from services.shell.zenoh_config import zenoh_config_from_args, zenoh_reason
 
+    _output_path(args.out, flag="--out", scenario=args.scenario)
     scenario = _load(args.scenario)
     if args.name == ROS2.name:
         _join_ros_graph(args)
@@ -66,19 +68,37 @@ def _cmd_service(args: argparse.Namespace) -> int:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
                      options=options, out_path=args.out, state_dir=args.state_dir,
-                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES)
+                     max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES,
+                     stall_limit_s=args.stall_limit_s)
     except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
     except zenoh.ZError as error:  # the session did not open: an endpoint it cannot listen on or reach
         raise CliError(f"cannot open a Zenoh session: {zenoh_reason(error)}") from None
 
 
+def _output_path(path: Path | None, *, flag: str, scenario: Path | None = None) -> None:
+    """Refuse an output file whose folder does not exist, that is a folder, or that is the `scenario` it
+    would overwrite (a run removes a stale output as it starts), before anything runs."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise CliError(f"{flag} {path}: is a folder, not a file")
+    if not path.parent.is_dir():
+        raise CliError(f"{flag} {path}: folder {path.parent} does not exist")
+    if scenario is not None and path.exists() and path.samefile(scenario):
+        raise CliError(f"{flag} {path}: is the scenario file")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    import signal
     import time
 
     from cvxnav.stages import RunError, load_stages
     from cvxnav.supervisor import PipelineError, RobotOptions, RunOptions, prepare_tls, run_pipeline, summary
 
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # kill, systemd and docker stop: like Ctrl-C
+    for path, flag in ((args.out, "--out"), (args.record, "--record"), (args.record_messages, "--record-messages")):
+        _output_path(path, flag=flag, scenario=args.scenario)
     scenario = _load(args.scenario)
     robot = None
     if args.ros2:
@@ -94,7 +114,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
-                             record_messages=args.record_messages, robot=robot)
+                             record_messages=args.record_messages, keep_logs=args.keep_logs, robot=robot)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
@@ -111,6 +131,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_TIMEOUT_OR_COLLISION
     except RunError as error:  # before any stage started
         raise CliError(str(error)) from None
+    if result is None and code == EXIT_INTERRUPTED:
+        print(f"{scenario.name}: interrupted before the sim wrote a run file", file=sys.stderr)
+        return code
     if result is None:
         print(f"{scenario.name}: timeout: the pipeline did not finish within the wall-clock guard", file=sys.stderr)
         return code
@@ -355,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.set_defaults(handler=_cmd_plan)
 
     from schemas.wiring import DEFAULT_ROBOT_ID, PIPELINE, PROCESSES, check_prefix, check_robot_id
+    from services.shell.watchdog import STALL_LIMIT_S
     from services.shell.zenoh_config import add_zenoh_arguments, argument_type, endpoint_argument
 
     robot_id, prefix = argument_type(check_robot_id), argument_type(check_prefix)
@@ -372,6 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--keep-logs", action="store_true",
+                     help="keep the run's folder of stage logs, configs and checkpoints (by default removed "
+                          "unless the run failed)")
     run.add_argument("--record", type=Path, default=None, metavar="FILE.rrd",
                      help="start the monitor stage and save a rerun recording")
     run.add_argument("--viewer", action="store_true", help="start the monitor stage and spawn a rerun viewer")
@@ -410,6 +437,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="reject (and report) an input message larger than N bytes (default 1 MiB)")
     service.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
                          help="keep state that must survive a restart here (sensing: point memory; planner: plan)")
+    service.add_argument("--stall-limit-s", type=_positive_float, default=STALL_LIMIT_S, metavar="S",
+                         help="under a watchdog (NOTIFY_SOCKET, WATCHDOG_USEC: systemd or cvxnav run), stop the "
+                              f"keep-alives when one input takes longer than this (default {STALL_LIMIT_S:g})")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")
@@ -500,7 +530,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cvxnav: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

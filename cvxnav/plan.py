@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from services.geometry import Ellipse
 from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
+from services.planner.route import KeepTo
 from services.smoother.core import Smoothed, smooth
 
 
@@ -36,6 +37,9 @@ class PlanSettings:
     repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
     grid_cover: GridCoverSettings = field(default_factory=GridCoverSettings)  # occupancy grids' cover
     corridor: CorridorSettings = field(default_factory=CorridorSettings)  # ... and where it is fitted
+    # On an occupancy grid the route is long and mostly straight: it is refined in windows round its turns
+    # and its start, this many turning radii wide (`RefineSettings.window_radii`).
+    map_window_radii: float | None = 2.0
 
 
 @dataclass
@@ -66,12 +70,15 @@ def fit_known_obstacles(
 
 
 def plan_on_model(
-    scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None
+    scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
+    route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
     on the model every planner is handed. Goals reached at the start, or with the goal before them
-    (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`)."""
+    (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
+    `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
+    route may go (`services.planner.core.plan_path`)."""
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if not len(goals):
         return stay_at_start(scenario.start.xy, grown)
@@ -83,6 +90,8 @@ def plan_on_model(
         bounds_min=np.array(scenario.bounds.min),
         bounds_max=np.array(scenario.bounds.max),
         max_curvature=scenario.max_curvature,
+        route_estimate_m=route_estimate_m,
+        route_keep_to=route_keep_to,
     )
     return plan_until_verified(
         **problem,
@@ -125,12 +134,14 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -
     grids = [o for o in scenario.obstacles if isinstance(o, OccupancyGridObstacle)]
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if grids and len(goals):
+        settings = replace(settings, refine=replace(settings.refine, window_radii=settings.map_window_radii))
         cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
         found = plan_in_corridor(
             cover=cover,
             waypoints=np.vstack([scenario.start.xy, goals]),
             fixed=grown,
-            plan_fn=lambda ellipses: plan_on_model(scenario, ellipses, settings=settings, clock=clock),
+            plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
+                scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to),
             settings=settings.corridor,
             timer=clock.stage,
         )

@@ -1,8 +1,17 @@
 """`cvxnav service NAME`: one process of the wiring table, its core built by the table's factory (or
-``--entry``) and run in the one shell until SIGINT/SIGTERM or, for the sim, the end of the run."""
+``--entry``) and run in the one shell until SIGINT/SIGTERM or, for the sim, the end of the run.
+
+The core is built and run in a worker thread, so the main thread keeps the signals: a SIGTERM during
+a long solve stops the process within ``STOP_GRACE_S`` (it exits without a worker still busy then).
+Under a watchdog (``NOTIFY_SOCKET``, ``WATCHDOG_USEC``: systemd or `cvxnav run`) the process sends
+its keep-alives while the worker makes progress (``services.shell.watchdog``).
+"""
 
 from __future__ import annotations
 
+import logging
+import os
+import sys
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -16,7 +25,11 @@ from schemas.scenario import Scenario
 from schemas.wiring import PROCESSES, SIM
 from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
-from services.shell.stage import install_signal_handlers, run_stage
+from services.shell.stage import STOP_GRACE_S, install_signal_handlers, run_in_worker, run_stage
+from services.shell.watchdog import STALL_LIMIT_S, Progress, Watchdog, keep_alive
+
+logger = logging.getLogger(__name__)
+EXIT_WORKER_BUSY = 1  # stopped, but its worker was still busy: exited without it
 
 
 def serve(
@@ -30,24 +43,43 @@ def serve(
     out_path: Path | None = None,
     max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
     state_dir: Path | None = None,
+    stall_limit_s: float = STALL_LIMIT_S,
 ) -> int:
     """Run process `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
 
     `options` go to the factory with the scenario (the sim's `SimConfig` fields, the monitor's
     targets); the sim writes its run file to `out_path`. An input payload larger than
     `max_payload_bytes` is rejected before it is decoded. With `state_dir`, a `Stateful` core's state
-    is saved there and restored from there.
+    is saved there and restored from there. A pass of the worker longer than `stall_limit_s` stops
+    the keep-alives (a hang).
     """
     if name not in PROCESSES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(PROCESSES)}")
     stop = threading.Event()
     install_signal_handlers(stop)
+    progress = Progress()
+    watchdog = Watchdog.from_environment(os.environ)
+    if watchdog is not None:
+        keep_alive(watchdog=watchdog, progress=progress, stall_limit_s=stall_limit_s, stop_event=stop)
+
     # A core computes near the origin, the keys carry world coordinates. A ROS 2 node's other side is the
     # robot's own frame, so the bridge speaks world coordinates on both of its sides.
     frame = LocalFrame() if PROCESSES[name].ros2 else LocalFrame.of(scenario)
-    core = load_factory(entry_point or PROCESSES[name].factory)(frame.scenario_to_local(scenario), **(options or {}))
-    run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
-              max_payload_bytes=max_payload_bytes, state_dir=state_dir, frame=frame)
+
+    def work():
+        core = load_factory(entry_point or PROCESSES[name].factory)(frame.scenario_to_local(scenario),
+                                                                     **(options or {}))
+        run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
+                  max_payload_bytes=max_payload_bytes, state_dir=state_dir, frame=frame, progress=progress)
+        return core
+
+    finished, core = run_in_worker(work, stop_event=stop)
+    if not finished:  # the worker may be inside a native solve: only leaving the process ends it
+        logger.error("stage %s: its worker was still busy %.1f s after the stop; exiting without it", name,
+                     STOP_GRACE_S)
+        logging.shutdown()
+        sys.stderr.flush()
+        os._exit(EXIT_WORKER_BUSY)
     if name != SIM.name:
         return 0
     result = frame.to_world(core.result())

@@ -39,8 +39,21 @@ A stage is swapped by naming, in a JSON `stages` file, either a Python entry poi
 The supervisor's own session is a peer of every stage (under TLS, their router).
 `--record-messages FILE` has that session record every message under the prefix (`cvxnav.record`).
 
+Hangs are faults too. Every process the supervisor starts is told of a watchdog as systemd tells a
+service (``NOTIFY_SOCKET``, ``WATCHDOG_USEC``: `services.shell.watchdog`), and the run's own stages
+send keep-alives while their worker makes progress. A process whose keep-alives stop for longer than
+`RunOptions.watchdog_s` (stopped by SIGSTOP, frozen, or stuck on one input past its stall limit) is
+killed with SIGKILL, and then restarted like a crashed one, as is a stage that sent none within
+`RunOptions.startup_timeout_s` of its start; a swapped command that never sends one (it does not speak
+the protocol) is watched for its exit only. A hung sim ends the run.
+
+Every child gets SIGTERM when the supervisor dies, however it dies (Linux ``PR_SET_PDEATHSIG``): no
+stage outlives a `cvxnav run` killed with SIGKILL, and the sim, stopping, writes its run file as
+`interrupted`. SIGINT and SIGTERM of the supervisor stop the run the same way.
+
 The run's directory of stage logs, Zenoh configs and checkpoints is removed when every goal is
-reached; otherwise it is kept and its path logged.
+reached or the run was interrupted, unless `RunOptions.keep_logs`; a run that failed keeps it, and
+its path is logged.
 
 `cvxnav run --ros2` (`run_robot`) drives a ROS 2 robot instead: the bridge (`cvxnav service ros2`, the
 wiring table's ROS2) takes the sim's place, started once the pipeline is alive and restarted like a
@@ -50,8 +63,10 @@ stopped and the exit code is 0. Every process also connects to the robot's rmw_z
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
+import os
 import shutil
 import signal
 import socket
@@ -60,13 +75,14 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
 from cvxnav.certs import client_config, missing_files, pipeline_names, router_config, write_deployment
-from cvxnav.exits import EXIT_BY_STATUS
+from cvxnav.exits import EXIT_BY_STATUS, EXIT_INTERRUPTED
 from cvxnav.record import MessageRecorder
 from cvxnav.stages import RunError, StageChoice, load_stages
 from schemas.files import OutputFileError, RunFile
@@ -75,9 +91,11 @@ from schemas.scenario import Scenario
 from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, ROS2, SIM, STAGES, default_prefix, key
 from services.ros2.bridge import BridgeConfig
 from services.shell.peers import alive_stages, wait_for_stages
+from services.shell.watchdog import STALL_LIMIT_S, NotifySocket, watchdog_supported
 from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
 class PipelineError(Exception):
@@ -101,6 +119,10 @@ class Child:
     name: str
     process: subprocess.Popen
     log_path: Path
+    last_beat_s: float | None = None  # monotonic time of its newest keep-alive; None: none yet
+    # When its first keep-alive is due (monotonic s); None: a swapped command, watched for its exit only.
+    first_beat_by_s: float | None = None
+    hung: str | None = None  # why the watchdog killed it
 
     def log_tail(self, *, lines: int = 5) -> str:
         try:
@@ -143,6 +165,10 @@ class RunOptions:
     restart_backoff_max_s: float = 5.0
     max_restarts: int = 4
     restart_window_s: float = 60.0
+    # A process whose keep-alives stop for this long is killed (then restarted); Nav2's bond allows 4 s.
+    watchdog_s: float = 3.0
+    stall_limit_s: float = STALL_LIMIT_S  # a stage stops its keep-alives when one input takes longer
+    keep_logs: bool = False  # keep the run's directory of logs, configs and checkpoints whatever the outcome
 
     @property
     def source(self) -> str:
@@ -259,6 +285,18 @@ class Supervisor:
         self._restart_due: dict[str, float] = {}  # stage -> monotonic time its restart is due
         self.log_dir = Path(tempfile.mkdtemp(prefix="cvxnav-run-"))
         self.state_dir = self.log_dir / "state"
+        self.notify = self._notify_socket()
+        self._exit_with_me = _exit_with_parent()
+
+    def _notify_socket(self) -> NotifySocket | None:
+        """Where the children send their keep-alives; None (no hang is seen) where it cannot be made."""
+        if not watchdog_supported():
+            return None
+        try:
+            return NotifySocket(path=self.log_dir / "notify.sock")
+        except OSError as error:  # e.g. a TMPDIR too long for a unix socket's path
+            logger.warning("no watchdog for this run's stages (a hang will not be seen): %s", error)
+            return None
 
     def _config_file(self, name: str) -> Path:
         path = self.log_dir / f"{name}.json5"
@@ -275,7 +313,8 @@ class Supervisor:
                           connect=",".join(doc["connect"]["endpoints"]), prefix=self.prefix, scenario=scenario_arg,
                           state_dir=state_dir)
             return [arg.format(**fields) for arg in choice.command]
-        cmd = [sys.executable, "-m", "cvxnav", "service", name, "--config", config, "--robot-id", self.options.robot_id]
+        cmd = [sys.executable, "-m", "cvxnav", "service", name, "--config", config, "--robot-id", self.options.robot_id,
+               "--stall-limit-s", repr(self.options.stall_limit_s)]
         if self.options.scenario_path:
             cmd += ["--scenario", scenario_arg]
         if name in PIPELINE:
@@ -313,19 +352,62 @@ class Supervisor:
     def start(self, name: str) -> Child:
         count = self.restart_count(name)
         log_path = self.log_dir / (f"{name}.log" if count == 0 else f"{name}.{count}.log")
+        env = dict(os.environ)
+        if self.notify is not None:
+            env.update(NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC=str(round(self.options.watchdog_s * 1e6)))
         with open(log_path, "wb") as log:
             process = subprocess.Popen(self._command(name), stdin=subprocess.DEVNULL, stdout=log,
-                                       stderr=subprocess.STDOUT, start_new_session=True)
-        child = Child(name=name, process=process, log_path=log_path)
+                                       stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                       preexec_fn=self._exit_with_me)
+        choice = self.options.stages.get(name)
+        speaks_watchdog = self.notify is not None and (choice is None or choice.command is None)
+        child = Child(name=name, process=process, log_path=log_path,
+                      first_beat_by_s=time.monotonic() + self.options.startup_timeout_s if speaks_watchdog else None)
         self.children[name] = child
         return child
 
+    def watch(self) -> None:
+        """Take the keep-alives that arrived; SIGKILL every child whose keep-alives stopped.
+
+        A `cvxnav service` child must send its first keep-alive within `startup_timeout_s` of its start
+        (one stopped before its loop ran never sends any); a swapped command is watched once it sends
+        one. ``WATCHDOG=trigger`` (a stage stuck on one input) acts at once. A stopped process dies of
+        SIGKILL too, so nothing stopped is left behind.
+        """
+        if self.notify is None:
+            return
+        now = time.monotonic()
+        by_pid = {child.process.pid: child for child in self.children.values()}
+        for pid, text in self.notify.receive():
+            child = by_pid.get(pid)
+            if child is None:
+                continue
+            states = text.split("\n")
+            if "WATCHDOG=1" in states:
+                child.last_beat_s = now
+            if "WATCHDOG=trigger" in states:
+                child.hung = "stuck on one input past its stall limit"
+        for child in self.children.values():
+            if child.process.poll() is not None:
+                continue
+            if child.hung is None and child.last_beat_s is not None:
+                silent_s = now - child.last_beat_s
+                if silent_s > self.options.watchdog_s:
+                    child.hung = f"no keep-alive for {silent_s:.1f} s"
+            elif child.hung is None and child.first_beat_by_s is not None and now > child.first_beat_by_s:
+                child.hung = f"no keep-alive within {self.options.startup_timeout_s:.0f} s of its start"
+            if child.hung is not None:
+                logger.warning("stage %s hung (%s): killing pid %d", child.name, child.hung, child.process.pid)
+                child.process.kill()
+                child.process.wait()
+
     def supervise(self) -> None:
-        """Restart every stage but the sim that has exited, once its backoff is over.
+        """Kill the hung stages; restart every stage but the sim that has exited, once its backoff is over.
 
         Raises PipelineError when a stage has exited more than `max_restarts` times within
         `restart_window_s`: it keeps crashing, and restarting it again would not help.
         """
+        self.watch()
         now = time.monotonic()
         for name, child in list(self.children.items()):
             if name == SIM.name or child.process.poll() is None:
@@ -349,8 +431,8 @@ class Supervisor:
                                 f"{options.restart_window_s:.0f} s, last code {code}): {child.log_tail(lines=3)}")
         self.restarts.append(Restart(stage=child.name, exit_code=code, found_s=now))
         delay = min(options.restart_backoff_max_s, options.restart_backoff_s * 2.0 ** len(recent))
-        logger.warning("stage %s exited with code %d; restarting it in %.1f s: %s", child.name, code, delay,
-                       child.log_tail(lines=1))
+        how = f"hung ({child.hung}) and was killed" if child.hung else f"exited with code {code}"
+        logger.warning("stage %s %s; restarting it in %.1f s: %s", child.name, how, delay, child.log_tail(lines=1))
         return delay
 
     def stop(self) -> None:
@@ -360,13 +442,39 @@ class Supervisor:
         for child in children:
             if child.process in killed:
                 logger.warning("stage %s ignored SIGTERM; it was killed", child.name)
+        if self.notify is not None:
+            self.notify.close()
+
+
+def _exit_with_parent() -> Callable[[], None] | None:
+    """A `preexec_fn` that has the child sent SIGTERM when this process dies, even by SIGKILL (Linux).
+
+    ``prctl(PR_SET_PDEATHSIG)`` is kept across exec, so it holds for any command; a child whose parent
+    died before the call goes at once. None where there is no prctl: children are then stopped only
+    by a supervisor that lives to stop them.
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: the child only calls it
+    parent_pid = os.getpid()
+
+    def in_child() -> None:
+        prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent_pid:
+            os._exit(1)
+
+    return in_child
 
 
 def stop_processes(processes: list[subprocess.Popen], *, grace_s: float) -> list[subprocess.Popen]:
-    """SIGTERM every running process, SIGKILL those still running after `grace_s`; the killed ones."""
+    """SIGTERM every running process, SIGKILL those still running after `grace_s`; the killed ones.
+
+    A stopped (SIGSTOP) process is continued after the SIGTERM, so it can act on it.
+    """
     for process in processes:
         if process.poll() is None:
             process.send_signal(signal.SIGTERM)
+            process.send_signal(signal.SIGCONT)
     deadline = time.monotonic() + grace_s
     killed = []
     for process in processes:
@@ -394,6 +502,8 @@ def _wait_alive(session: zenoh.Session, supervisor: Supervisor, *, timeout_s: fl
 def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFile | None, int]:
     """Run every stage as a process until the sim ends; the exit code, the run file and the restarts.
 
+    SIGINT (KeyboardInterrupt; `cvxnav run` turns SIGTERM into one) stops the run: the sim, stopped,
+    writes its run file as `interrupted`. Interrupted before the sim started, there is no run file.
     Raises RunError, before starting anything, if the robot id is already up where the run connects.
     """
     from sim.core import default_time_limit_s
@@ -404,6 +514,8 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
     time_limit_s = options.time_limit_s or default_time_limit_s(scenario)
     recorder = (MessageRecorder(path=options.record_messages, prefix=supervisor.prefix, scenario=scenario)
                 if options.record_messages is not None else None)
+    sim_started = interrupted = False
+    code: int | None = None
     try:
         try:
             opened = zenoh.open(config_from_doc(supervisor.session_doc))
@@ -434,28 +546,47 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
             if options.monitor_args is not None:
                 supervisor.start(MONITOR.name)  # before the sim, so it sees the world and the first scan
             _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s)
+            options.out_path.unlink(missing_ok=True)  # what is there after the run is this run's, or nothing
             sim = supervisor.start(SIM.name)
+            sim_started = True
             wall_limit_s = time_limit_s * (1.5 if options.realtime else 1.0) + options.startup_timeout_s
             code = _follow(sim=sim, supervisor=supervisor, progress=progress, time_limit_s=time_limit_s,
                            wall_limit_s=wall_limit_s, goals=len(scenario.goals), show=options.show_progress)
             state_sub.undeclare()
             path_sub.undeclare()
+    except KeyboardInterrupt:
+        interrupted = True
+        logger.warning("interrupted: stopping the run")
+    except PipelineError:
+        logger.warning("stage logs kept in %s", supervisor.log_dir)
+        raise
     finally:
         supervisor.stop()
         if recorder is not None:
             recorder.close()
     restarts = len(supervisor.restarts)
-    if code is None:
+    if interrupted and not sim_started:
+        _clean_up(supervisor, keep=options.keep_logs)
+        return EXIT_INTERRUPTED, None, restarts
+    if code is None and not interrupted:
         return EXIT_BY_STATUS["timeout"], None, restarts
     try:
         result = RunFile.read(options.out_path)
     except OutputFileError as error:
+        if interrupted:  # the sim did not stop in time to write it
+            _clean_up(supervisor, keep=options.keep_logs)
+            return EXIT_INTERRUPTED, None, restarts
         raise PipelineError(f"the sim wrote no usable run file: {error}") from None
-    if result.status == "reached":  # nothing to look into: the stage logs, configs and checkpoints go
-        shutil.rmtree(supervisor.log_dir, ignore_errors=True)
-    else:
-        logger.warning("stage logs kept in %s", supervisor.log_dir)
+    _clean_up(supervisor, keep=options.keep_logs or result.status not in ("reached", "interrupted"))
     return EXIT_BY_STATUS[result.status], result, restarts
+
+
+def _clean_up(supervisor: Supervisor, *, keep: bool) -> None:
+    """Remove the run's directory of logs, configs and checkpoints, or say where it was kept."""
+    if keep:
+        logger.warning("stage logs kept in %s", supervisor.log_dir)
+    else:
+        shutil.rmtree(supervisor.log_dir, ignore_errors=True)
 
 
 def _follow(*, sim: Child, supervisor: Supervisor, progress: _Progress, time_limit_s: float,
@@ -485,6 +616,8 @@ def _follow(*, sim: Child, supervisor: Supervisor, progress: _Progress, time_lim
             update()
             time.sleep(0.1)
         update()
+    if sim.hung is not None:
+        raise PipelineError(f"the sim hung ({sim.hung}) and was killed: {sim.log_tail(lines=2)}")
     return sim.process.returncode
 
 
@@ -500,8 +633,9 @@ class RobotRun:
 def run_robot(*, options: RunOptions, scenario: Scenario, stop_event: threading.Event) -> RobotRun:
     """Every stage as a process and the ROS 2 bridge in the sim's place, until `stop_event`; then all stopped.
 
-    Stages (the bridge too) that exit are restarted as in a sim run; PipelineError when one keeps
-    crashing or the pipeline never comes up. The stage logs are kept when any stage was restarted.
+    Stages (the bridge too) that exit or hang are restarted as in a sim run; PipelineError when one
+    keeps crashing or the pipeline never comes up. The stage logs are kept when any stage was
+    restarted, or when `options.keep_logs`.
     """
     assert options.robot is not None
     supervisor = Supervisor(options=options, scenario=scenario)
@@ -535,10 +669,7 @@ def run_robot(*, options: RunOptions, scenario: Scenario, stop_event: threading.
         supervisor.stop()
         if recorder is not None:
             recorder.close()
-    if supervisor.restarts:
-        logger.warning("stage logs kept in %s", supervisor.log_dir)
-    else:
-        shutil.rmtree(supervisor.log_dir, ignore_errors=True)
+    _clean_up(supervisor, keep=options.keep_logs or bool(supervisor.restarts))
     return RobotRun(plans=plans, restarts=len(supervisor.restarts), wall_s=time.monotonic() - started)
 
 

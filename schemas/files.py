@@ -4,8 +4,12 @@ as frozen pydantic models.
 Writers and readers share these models, so a file that `read` accepts is exactly what `write` produces:
 finite numbers, no unknown fields, the format string pinned.
 
-`cvxnav.run/2` is `cvxnav.run/1` in which `min_clearance` may be `null`: the world had no obstacle to
-measure a clearance from (`/1` could not say so, and a run in an empty world wrote no valid file).
+`cvxnav.run/2` is `cvxnav.run/1` with two changes. `min_clearance` may be `null`: the world had no
+obstacle to measure a clearance from (`/1` could not say so, and a run in an empty world wrote no valid
+file). And one more status, `interrupted`: the run was stopped (SIGINT or SIGTERM of `cvxnav run` or of
+the sim, or the death of its supervisor) before it reached an outcome; `cvxnav run` then exits with 130.
+Its `latency_ms` counts every scan sent, an unanswered one as the time until the next answer to it or a
+later scan (or until the run ended).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from schemas.scenario import FieldError, Real, Vec2, parse_json_model, read_text
 
 PLAN_FORMAT = "cvxnav.plan/2"  # /2: `timings_ms` gains `load` and `corridor`, the file `reason`
-RUN_FORMAT = "cvxnav.run/2"  # /2: `min_clearance` null when there is no obstacle
+RUN_FORMAT = "cvxnav.run/2"  # /2: `min_clearance` null when there is no obstacle; the status `interrupted`
 RUN_FORMATS = ("cvxnav.run/1", RUN_FORMAT)  # read; the newest is written
 
 MAX_OUTPUT_BYTES = 256 << 20  # a plan or run file larger than this is not one cvxnav wrote
@@ -118,7 +122,7 @@ class RunFile(_OutputFile):
 
     format: Literal["cvxnav.run/1", "cvxnav.run/2"] = RUN_FORMAT
     scenario: str
-    status: Literal["reached", "no_path", "timeout", "collision"]
+    status: Literal["reached", "no_path", "timeout", "collision", "interrupted"]
     goals_reached: int = Field(ge=0)
     trajectory: list[tuple[float, float, float, float]]
     replans: int = Field(ge=0)
@@ -126,9 +130,12 @@ class RunFile(_OutputFile):
     min_clearance: float | None  # the footprint's least distance to an obstacle; None: there is none
 
     @model_validator(mode="after")
-    def _clearance_of_its_format(self) -> RunFile:
-        if self.min_clearance is None and self.format == "cvxnav.run/1":
-            raise FieldError(("min_clearance",), f"null is new in {RUN_FORMAT}")
+    def _new_in_run_2(self) -> RunFile:
+        if self.format == "cvxnav.run/1":
+            if self.min_clearance is None:
+                raise FieldError(("min_clearance",), f"null is new in {RUN_FORMAT}")
+            if self.status == "interrupted":
+                raise FieldError(("status",), f"interrupted is new in {RUN_FORMAT}")
         return self
 
     def backed_out(self) -> tuple[int, float]:

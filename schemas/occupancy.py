@@ -29,7 +29,6 @@ STATE_NAMES = {FREE: "free", OCCUPIED: "occupied", UNKNOWN: "unknown"}
 MAP_SAVER_UNKNOWN = 205  # the shade Nav2's map_saver writes for an unknown cell in trinary mode
 MAX_CELLS = 1 << 24  # larger maps are refused before their image is decoded (docs/contracts.md)
 MAX_YAML_BYTES = 1 << 20  # a map's YAML holds a handful of fields
-_EIGHT = np.ones((3, 3), dtype=bool)
 
 MapMode = Literal["trinary", "scale", "raw"]
 
@@ -184,7 +183,7 @@ class OccupancyGrid:
         rows = rows or slice(-1, self.shape[0] + 1)
         cols = cols or slice(-1, self.shape[1] + 1)
         blocked = self.padded_blocked(slice(rows.start - 1, rows.stop + 1), slice(cols.start - 1, cols.stop + 1))
-        touches_free = ndimage.binary_dilation(~blocked, structure=_EIGHT)
+        touches_free = ndimage.maximum_filter(~blocked, size=3, mode="constant", cval=False)  # 8 neighbours
         j, i = np.nonzero((blocked & touches_free)[1:-1, 1:-1])
         return np.column_stack([i + cols.start, j + rows.start])
 

@@ -53,13 +53,12 @@ class Topic:
     """One key of the pipeline: its name relative to the prefix and its model.
 
     ``latched``: the publisher answers gets with the last message (a late subscriber still has the
-    world). ``block``: the publisher waits rather than drop a message when the network is congested.
+    world). Every topic is dropped rather than queued on a congested link (``services.shell``).
     """
 
     name: str
     model: type[Message]
     latched: bool = False
-    block: bool = False
 
 
 @dataclass(frozen=True)
@@ -91,8 +90,8 @@ TOPICS: Mapping[str, Topic] = MappingProxyType(
     {
         topic.name: topic
         for topic in (
-            Topic(name="scan", model=Scan, block=True),
-            Topic(name="state", model=RobotState, block=True),
+            Topic(name="scan", model=Scan),
+            Topic(name="state", model=RobotState),
             Topic(name="clusters", model=Clusters),
             Topic(name="ellipsoids", model=Ellipsoids),
             Topic(name="raw_path", model=RawPath),

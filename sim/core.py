@@ -37,9 +37,9 @@ from sim.world import World
 
 logger = logging.getLogger(__name__)
 
-Outcome = str  # "reached" | "no_path" | "timeout" | "collision"
+Outcome = str  # "reached" | "no_path" | "timeout" | "collision"; a run stopped before one is "interrupted"
 _UNHEARD_CELL_M = 0.01  # hits kept for a restarted sensing stage: one per cell of this size
-_UNHEARD_MAX = 10_000  # and at most this many (the newest), so a scan stays well under the payload cap
+_UNHEARD_MAX = 10_000  # and at most this many (the newest)
 _SCAN_POSES_KEPT = 256  # where the recent scans were taken (a path is checked from its scan's pose)
 _TRACK_STEP_M = 0.05  # the tracks the car can back out along: one pose per this much forward travel
 
@@ -106,7 +106,7 @@ class SimCore:
         self.resume_seq = 0  # answers to earlier scans are not taken: they predate a stage's loss or a back-out
         self.scan_xy: dict[int, tuple[float, float]] = {}  # recent scans' positions, by seq
         self.unheard: dict[tuple[int, int], tuple[float, float]] = {}  # hits the sensing stage missed
-        self.unheard_seq: int | None = None  # the first scan that carried them to a live sensing stage
+        self.carried: dict[int, list[tuple[int, int]]] = {}  # scan seq -> the unheard hits (cells) it carried
         self.trajectory: list[tuple[float, float, float, float]] = [self._row()]
         self.min_clearance_m = self.world.footprint_clearance(self.state)
         self.outcome: Outcome | None = "reached" if self.goals.done else None
@@ -147,8 +147,10 @@ class SimCore:
         """The state and the scan of this sensor tick; both carry the tick's seq and sim time.
 
         The guard remembers the hits, and the car brakes if the path it drives now passes too close to
-        one. While the sensing stage is down its hits are kept (one per 1 cm cell); once it is back they
-        are sent with every scan until the pipeline answers one of those scans.
+        one. While the sensing stage is down its hits are kept (one per 1 cm cell); once it is back each
+        scan carries those within the sensor's range of its pose, as many as leave it a scan the sensing
+        stage accepts (one hit per ray at most, `services.limits`), until an answer to a scan that carried
+        them arrives. Hits the car has driven out of range of wait until it is back in range.
         """
         s = self.state
         hits = self.sensor.scan(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad,
@@ -159,15 +161,24 @@ class SimCore:
         if "sensing" in self.missing:
             self._keep_unheard(points)
         elif self.unheard:
-            if self.unheard_seq is None:
-                self.unheard_seq = self.scan_seq
-            points = list(self.unheard.values()) + points
+            points = points + self._carry(points)
         self.scan_xy[self.scan_seq] = (s.x_m, s.y_m)
         while len(self.scan_xy) > _SCAN_POSES_KEPT:
             del self.scan_xy[next(iter(self.scan_xy))]
         scan = Scan(header=Header(stamp_s=self.t_s, seq=self.scan_seq),
                     pose=Pose2D(x_m=s.x_m, y_m=s.y_m, theta_rad=s.theta_rad), points=points)
         return self.robot_state(), scan
+
+    def _carry(self, hits: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        """The unheard hits this scan carries (recorded under its seq, see `accept`)."""
+        room = self.sensor.rays - len(hits)
+        x_m, y_m = self.state.x_m, self.state.y_m
+        cells = [cell for cell, (x, y) in self.unheard.items()
+                 if math.hypot(x - x_m, y - y_m) <= self.sensor.range_m][:max(0, room)]
+        self.carried[self.scan_seq] = cells
+        while len(self.carried) > _SCAN_POSES_KEPT:
+            del self.carried[next(iter(self.carried))]
+        return [self.unheard[cell] for cell in cells]
 
     def _keep_unheard(self, points: list[tuple[float, float]]) -> None:
         for x, y in points:
@@ -213,17 +224,19 @@ class SimCore:
         An answer is ignored while a stage is down or when it answers a scan sent before the loss. A
         path the guard refuses (off the map, too close to a hit of the car's own scans, into a known
         ellipse), or that starts against the car's heading, is not driven (the car brakes); the reason
-        is returned.
+        is returned. An answer to a scan older than `stale_after_s` (realtime, after a link was cut) is
+        no verdict on where the car is now: a path it rejects, or its no_path, only brakes the car, and
+        never starts a back-out.
         """
+        verdict = self.no_plan if self.t_s - answer.header.stamp_s <= self.config.stale_after_s else self.reject
+        for cell in self.carried.pop(answer.scan_seq, ()):  # the restarted sensing stage has had them
+            self.unheard.pop(cell, None)
         if self.missing or answer.scan_seq < self.resume_seq or self.backout is not None:
             return None
-        if self.unheard_seq is not None and answer.scan_seq >= self.unheard_seq:
-            self.unheard.clear()  # the restarted sensing stage has had them
-            self.unheard_seq = None
         if not self.plan_ids or self.plan_ids[-1] != answer.plan_id:
             self.plan_ids.append(answer.plan_id)
         if answer.status == "no_path":
-            self.no_plan(answer.reason)
+            verdict(answer.reason)
             return None
         if answer.goal_index != self.goals.reached_count or len(answer.points) < 2:
             return None  # planned for a goal already passed: keep the current path until the replan
@@ -233,7 +246,7 @@ class SimCore:
         if reason is None and np.dot(points[1] - points[0], self._heading()) <= 0.0:
             reason = "the path starts against the car's heading"  # a way the car cannot turn onto
         if reason is not None:
-            self.no_plan(f"plan {answer.plan_id}: {reason}")
+            verdict(f"plan {answer.plan_id}: {reason}")
             return reason
         self.path = points
         self.path_time_s = self.t_s
@@ -334,7 +347,7 @@ class SimCore:
                               max=float(lat.max())) if lat.size else LatencyStats(p50=0.0, p99=0.0, max=0.0))
         return RunFile(
             scenario=self.scenario.name,
-            status=self.outcome or "timeout",
+            status=self.outcome or "interrupted",  # stopped before the run had an outcome
             goals_reached=self.goals.reached_count,
             trajectory=self.trajectory,
             replans=self.replans,

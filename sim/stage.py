@@ -9,7 +9,9 @@
   against what the car now knows, and the car brakes rather than drive on a path checked only against
   older obstacles. So a forged error or path, sent the moment the scan goes out, never pre-empts the
   pipeline's real answer. Sim time then depends only on the scenario and the seed, so two runs give the
-  same trajectory, and a run goes as fast as the pipeline answers.
+  same trajectory, and a run goes as fast as the pipeline answers. Scan and state are dropped, not
+  queued, on a congested link (a subscriber that stops reading must not stall the loop), so the sim
+  sends the scan it waits for again until the sensing stage reports it.
 - realtime: sim time follows the wall clock; scans go out at the sensor rate and the newest path is
   used whenever it arrives, as on a real robot.
 
@@ -31,8 +33,9 @@ will not drive on (a `Refusal`). Two watchdogs:
   every stage is back. In lockstep the sim then stops waiting for the answer to the current scan
   (none will come) and runs on the wall clock, braking and standing, until the stage is back; so a
   restart costs the car the restart time, never the answer timeout. Scan hits taken while the sensing
-  stage was down ride along with every scan until the pipeline answers one, so the restarted stage's
-  memory misses nothing the car saw (its point memory dedupes them).
+  stage was down ride along with the following scans, as many as keep each a valid scan, until a scan
+  that carried them is answered, so the restarted stage's memory misses nothing the car saw (its point
+  memory dedupes them).
 - the path check (`services.drive.guard`): every path, and the path being driven whenever a scan or
   newer ellipses arrive, is checked against the map's bounds, the car's own scan hits and the newest
   grown ellipses from the ellipsoid stage; a path that fails any is not driven. For a received path the
@@ -54,7 +57,7 @@ from pydantic import BaseModel
 from schemas.files import RunFile
 from schemas.messages import Ellipsoids, SmoothPath, StageStatus
 from schemas.scenario import Scenario
-from schemas.wiring import SIM
+from schemas.wiring import SIM, subscribers_of
 from services.contract import Outputs, Refusal, StageInputError
 from services.limits import Reach
 from sim.core import SimConfig, SimCore
@@ -62,10 +65,13 @@ from sim.truth import world_message
 
 logger = logging.getLogger(__name__)
 
-# Lockstep: a scan not answered within this wall time is sent again, while routes to fresh (or
-# restarted) peers may not have been up for it: the first scan, and any within this long of a stage's return.
+# Lockstep: a scan not answered within this wall time (or twice the sensing stage's newest processing
+# time, if longer) is sent again while the sensing stage has not reported it (scan and state are
+# dropped, not queued, on a congested link), and while routes to fresh (or restarted) peers may not
+# have been up for it: the first scan, and any within this long of a stage's return.
 RESEND_S = 1.0
 REJOIN_RESEND_S = 5.0
+_SCAN_READERS = subscribers_of("scan")
 # Lockstep: the ellipses of a scan come straight from their stage, its path two stages later; a path is
 # held this long at most for them, so it is checked against the same obstacles in every run.
 ELLIPSOIDS_WAIT_S = 1.0
@@ -85,6 +91,7 @@ class _Waiting:
     started_s: float
     deadline_s: float
     resend_s: float
+    delivered: bool = False  # the sensing stage reported it: no need to send it again
     held: list[SmoothPath] = field(default_factory=list)  # its answers, waiting for the scan's ellipses
     held_until_s: float = math.inf
     doubt: str | None = None  # why the car would brake if nothing better arrives (None: keep the path)
@@ -96,8 +103,9 @@ class SimStage:
 
     def __init__(self, *, scenario: Scenario, config: SimConfig, stage_wait_s: float = 30.0,
                  latency_clock: Callable[[], float] = time.perf_counter) -> None:
-        """`latency_clock` times each scan from the moment it is sensed to its answer's arrival (run.json's
-        latency); everything else runs on the shell's `now_s`."""
+        """`latency_clock` times each scan from the moment it is first sensed to the arrival of the first
+        answer to it or to a later scan, or to the run's end if none came (run.json's latency: a stall
+        counts in full); everything else runs on the shell's `now_s`."""
         self.core = SimCore(scenario=scenario, config=config)
         self.latency_clock = latency_clock
         self.config = config
@@ -105,9 +113,10 @@ class SimStage:
         self.stage_wait_s = stage_wait_s
         self.done = False
         self.alive: set[str] = set()  # pipeline stages whose token is up
-        self.published_at: dict[int, float] = {}  # scan seq -> latency_clock when it was (last) sensed
+        self.published_at: dict[int, float] = {}  # unanswered scan seq -> latency_clock when first sensed
         self.stamps: dict[int, float] = {}  # scan seq -> its sim stamp
         self.latencies_ms: list[float] = []
+        self._ended_at: float | None = None  # latency_clock when the run stopped
         self.rejected: dict[float, tuple[str, float]] = {}  # scan stamp -> (a stage's reason it has no path
         # for it, clock time it was heard)
         self._settled_stamp_s = -math.inf  # realtime: the newest scan an answer was driven on (or no_path) for
@@ -121,6 +130,7 @@ class SimStage:
         self._waiting: _Waiting | None = None
         self._next_s = 0.0
         self._sleeping = False  # lockstep: standing for a stage that is down; inputs wait for the next tick
+        self._resend_after_s = RESEND_S
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, **options) -> SimStage:
@@ -132,9 +142,9 @@ class SimStage:
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
         if isinstance(message, SmoothPath):
             self._check_answers_a_sent_scan(message.scan_seq)
-            sent = self.published_at.pop(message.scan_seq, None)
-            if sent is not None:
-                self.latencies_ms.append((self.latency_clock() - sent) * 1e3)
+            now = self.latency_clock()
+            for seq in [seq for seq in self.published_at if seq <= message.scan_seq]:  # this one and skipped ones
+                self.latencies_ms.append((now - self.published_at.pop(seq)) * 1e3)
             self._paths.append(message)
         elif isinstance(message, Ellipsoids):
             # The guard keeps the newest set by scan; a forged one numbered past every real scan would
@@ -161,6 +171,11 @@ class SimStage:
                 and status.input_stamp_s is not None):
             self.rejected.setdefault(status.input_stamp_s, (f"{stage}: {status.reason}", now_s))
             self._heard = True
+        if stage in _SCAN_READERS and status.stage == stage:
+            self._resend_after_s = max(RESEND_S, 2e-3 * status.processing_ms)
+            wait, stamp_s = self._waiting, status.input_stamp_s
+            if wait is not None and stamp_s is not None and abs(stamp_s - wait.stamp_s) <= 1e-9:
+                wait.delivered = True
         return []
 
     def next_tick_s(self, *, now_s: float) -> float | None:
@@ -184,10 +199,14 @@ class SimStage:
         return self._realtime(now_s) if self.config.realtime else self._lockstep(now_s)
 
     def stop(self, *, now_s: float) -> Outputs:
+        self._ended_at = self.latency_clock()
         return [("state", self.core.robot_state())]  # done=True once the run is over
 
     def result(self) -> RunFile:
-        return self.core.result(latencies_ms=self.latencies_ms)
+        """The run file; a scan never answered counts in the latency until the run stopped."""
+        ended = self.latency_clock() if self._ended_at is None else self._ended_at
+        unanswered = [(ended - sent) * 1e3 for sent in self.published_at.values()]
+        return self.core.result(latencies_ms=self.latencies_ms + unanswered)
 
     # -- the loops
 
@@ -215,7 +234,8 @@ class SimStage:
                 seq = core.scan_seq
                 out += self._publish(now_s)
                 self._waiting = _Waiting(seq=seq, stamp_s=core.t_s, started_s=now_s,
-                                         deadline_s=now_s + self.config.answer_timeout_s, resend_s=now_s + RESEND_S)
+                                         deadline_s=now_s + self.config.answer_timeout_s,
+                                         resend_s=now_s + self._resend_after_s)
             wait = self._waiting
             if now_s >= wait.deadline_s:
                 taken, settled = self._take_held(wait, now_s)
@@ -254,10 +274,10 @@ class SimStage:
                     core.no_plan(wait.doubt)  # no verified path for what the car now knows: brake
                 self._end_scan(now_s, answered=True, stalled=False)
                 continue
-            resending = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S
+            resending = wait.seq == 0 or now_s - self.back_at_s < REJOIN_RESEND_S or not wait.delivered
             if resending and now_s >= wait.resend_s:
-                out += self._publish(now_s)  # routes to fresh (or restarted) peers may not have been up for it
-                wait.resend_s = now_s + RESEND_S
+                out += self._publish(now_s)  # dropped, or routes to fresh (or restarted) peers were not up for it
+                wait.resend_s = now_s + self._resend_after_s
             self._next_s = min(wait.deadline_s, wait.doubt_until_s, wait.resend_s if resending else math.inf)
             return out
 
@@ -311,7 +331,7 @@ class SimStage:
 
     def _publish(self, now_s: float) -> Outputs:
         state, scan = self.core.sense()
-        self.published_at[scan.header.seq] = self.latency_clock()
+        self.published_at.setdefault(scan.header.seq, self.latency_clock())  # a re-sent scan waits since the first
         self.stamps[scan.header.seq] = scan.header.stamp_s
         return [("state", state), ("scan", scan)]
 

@@ -1,8 +1,20 @@
-"""A `cvxnav run`'s stage processes as /proc shows them: the children running `python -m cvxnav service NAME`."""
+"""A `cvxnav run`'s stage processes as /proc shows them: the children running `python -m cvxnav service NAME`,
+and what /proc says of a process, for the e2e tests that signal them."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+
+def _stat_fields(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (which may hold spaces and parentheses)."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+def argv(pid: int) -> list[str]:
+    """The command line of a process."""
+    return [arg.decode() for arg in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") if arg]
 
 
 def stage_pids(parent_pid: int) -> dict[str, int]:
@@ -10,10 +22,24 @@ def stage_pids(parent_pid: int) -> dict[str, int]:
     pids = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
+            parent = int(_stat_fields(int(stat.parent.name))[1])
+            args = argv(int(stat.parent.name))
         except (OSError, IndexError, ValueError):
-            continue
-        if parent == parent_pid and b"service" in argv:
-            pids[argv[argv.index(b"service") + 1].decode()] = int(stat.parent.name)
+            continue  # exited while we looked
+        if parent == parent_pid and "service" in args:
+            pids[args[args.index("service") + 1]] = int(stat.parent.name)
     return pids
+
+
+def alive(pid: int) -> bool:
+    """Whether `pid` is a process that has not exited (a zombie has)."""
+    try:
+        return _stat_fields(pid)[0] != "Z"
+    except OSError:
+        return False
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU time of a process, in seconds."""
+    fields = _stat_fields(pid)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

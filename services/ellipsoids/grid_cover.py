@@ -141,43 +141,62 @@ class GridCover:
         top = np.array(self.tiles_shape) - 1
         lo = np.clip(np.floor((g - reach) / self.tile_cells).astype(int), 0, top)
         hi = np.clip(np.floor((g + reach) / self.tile_cells).astype(int), 0, top)
-        spans = np.unique(np.hstack([lo, hi]), axis=0)
-        return {(x, y) for ax, ay, bx, by in spans.tolist() for x in range(ax, bx + 1) for y in range(ay, by + 1)}
+        # Each point's square spans a few tiles each way: marked offset by offset, clipped to its last tile.
+        hit = np.zeros(self.tiles_shape, dtype=bool)
+        wide = hi - lo
+        for dx in range(int(wide[:, 0].max()) + 1):
+            for dy in range(int(wide[:, 1].max()) + 1):
+                hit[np.minimum(lo[:, 0] + dx, hi[:, 0]), np.minimum(lo[:, 1] + dy, hi[:, 1])] = True
+        return set(zip(*(axis.tolist() for axis in np.nonzero(hit))))
 
     def pieces(self, tiles: Iterable[Tile]) -> list[GridPiece]:
         """The pieces of the given tiles, fitting the tiles not fitted yet."""
         wanted = sorted(set(tiles))
         missing = [t for t in wanted if t not in self.fitted]
-        for block in _blocks(missing):
-            self._fit_block(block)
+        if missing:
+            self._fit_blocks(_blocks(missing))
         return [piece for t in wanted for piece in self.fitted[t]]
 
     # ------------------------------------------------------------------ one batch of tiles
 
-    def _fit_block(self, group: list[Tile]) -> None:
-        """Fit a group of neighbouring tiles on one distance transform over them and their halo, as whole
+    def _fit_blocks(self, groups: list[list[Tile]]) -> None:
+        """Fit groups of neighbouring tiles, each on one distance transform over it and its halo, as whole
         rectangles of tiles (`_rectangles`): a rectangle's border cells are pieces across its tiles' edges
-        (a wall is not cut at every tile), each kept under the tile of its first cell."""
+        (a wall is not cut at every tile), each kept under the tile of its first cell. Every rectangle's
+        pieces go through one bisection: a level is one batch of array operations, whatever the groups."""
+        parts, distances, start = [], [], 0
+        for group in groups:
+            window = self._window(group)
+            self.windows.append(window)
+            distances.append(window.distance.reshape(-1))
+            rows, cols = window.distance.shape
+            for tile in group:
+                self.fitted[tile] = []
+            for block in _rectangles(group):
+                if (part := self._pieces_of(block)) is not None:
+                    cells, piece, boxes = part
+                    # Each piece's box also says where its window's distances are (`_sample_max`).
+                    where = np.tile((start, window.row0, window.col0, cols), (len(boxes), 1))
+                    parts.append((cells, piece, np.column_stack([boxes, where])))
+            start += rows * cols
+        if not parts:
+            return
+        offsets = np.cumsum([0] + [int(part[1].max()) + 1 for part in parts[:-1]])
+        cells = np.vstack([part[0] for part in parts])
+        piece = np.concatenate([part[1] + offset for part, offset in zip(parts, offsets)])
+        boxes = np.vstack([part[2] for part in parts])
+        for made in self._bisect(cells, piece, boxes, np.concatenate(distances)):
+            self.fitted[self._tile_of(made.cells[0])].append(made)
+
+    def _window(self, group: list[Tile]) -> DistanceWindow:
+        """The distance transform over a group of tiles and their halo."""
         ranges = [self.tile_range(t) for t in group]
         h = self.halo_cells + 1
         r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
         c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
         edt = self.grid.distance_window(slice(r0, r1), slice(c0, c1), halo=self.reach_cells)
         half = 0.5 * self.grid.resolution_m
-        window = DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt - half, 0.0).astype(np.float32))
-        self.windows.append(window)
-        for tile in group:
-            self.fitted[tile] = []
-        parts = [part for block in _rectangles(group) if (part := self._pieces_of(block)) is not None]
-        if not parts:
-            return
-        # Every rectangle's pieces in one bisection: a level is one batch of array operations.
-        offsets = np.cumsum([0] + [int(part[1].max()) + 1 for part in parts[:-1]])
-        cells = np.vstack([part[0] for part in parts])
-        piece = np.concatenate([part[1] + offset for part, offset in zip(parts, offsets)])
-        boxes = np.vstack([part[2] for part in parts])
-        for made in self._bisect(cells, piece, boxes, window):
-            self.fitted[self._tile_of(made.cells[0])].append(made)
+        return DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt - half, 0.0).astype(np.float32))
 
     def _pieces_of(self, block: list[Tile]) -> tuple[IntArray, IntArray, IntArray] | None:
         """A rectangle of tiles' border cells (by piece, then row, then column), their first pieces, and
@@ -193,7 +212,8 @@ class GridCover:
         mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
         # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
         # only if the wall's ellipse cannot take it within the tolerance.
-        near = ndimage.binary_dilation(mask, structure=_EIGHT, iterations=self.join_cells) if self.join_cells else mask
+        # (k dilations by the 8-neighbourhood are one by a (2k + 1)-square: a separable maximum filter.)
+        near = ndimage.maximum_filter(mask, size=2 * self.join_cells + 1, mode="constant", cval=False)
         labels, _ = ndimage.label(near, structure=_EIGHT)
         js, is_ = np.nonzero(mask)  # row by row, then column
         _, piece = np.unique(labels[js, is_], return_inverse=True)
@@ -206,13 +226,14 @@ class GridCover:
     def _tile_of(self, cell: IntArray) -> Tile:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
 
-    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, window: DistanceWindow):
-        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken."""
+    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32]):
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken.
+        `distance`: the windows' distances, one after another (each piece's box says where its window is)."""
         tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
             self.fit_count += fit.count
-            p, grown, excess = self._grow(fit, window, boxes)
+            p, grown, excess = self._grow(fit, distance, boxes)
             side = _sides(cells, piece, fit)
             below = np.bincount(piece, weights=side, minlength=fit.count)
             splittable = (below > 0) & (below < fit.count_cells)
@@ -226,7 +247,7 @@ class GridCover:
             cells, piece = cells[keep][order], halves[order]
             boxes = boxes[labels // 2]
 
-    def _grow(self, fit: _Fits, window: DistanceWindow, boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
         `growths` values of p per piece.
 
@@ -242,14 +263,14 @@ class GridCover:
         grown = np.sqrt((1.0 + 1.0 / p)[..., None] * fit.semi_axes[:, None, :] ** 2 + ((1.0 + p) * r * r)[..., None])
         P, G = p.shape
         rows = np.repeat(np.arange(P), G)
-        bound = _sample_max(fit.centre[rows], fit.axes[rows], grown.reshape(-1, 2), boxes[rows], window, res=res,
+        bound = _sample_max(fit.centre[rows], fit.axes[rows], grown.reshape(-1, 2), boxes[rows], distance, res=res,
                             step_cells=2.0, interior=False).reshape(P, G)
         best = np.argmin(bound, axis=1)
         take = np.arange(P)
         excess = bound[take, best] - r
         near = np.flatnonzero(excess <= self.settings.tolerance_m)
         if len(near):
-            chosen = (fit.centre[near], fit.axes[near], grown[near, best[near]], boxes[near], window)
+            chosen = (fit.centre[near], fit.axes[near], grown[near, best[near]], boxes[near], distance)
             edge = _sample_max(*chosen, res=res, step_cells=1.0, interior=False)
             inner = _sample_max(*chosen, res=res, step_cells=2.0, interior=True)
             excess[near] = np.maximum(excess[near], np.maximum(edge, inner) - r)
@@ -366,11 +387,12 @@ def _sides(cells: IntArray, piece: IntArray, fit: _Fits) -> NDArray[np.bool_]:
     return np.einsum("ij,ij->i", d, fit.direction[piece]) <= 0.0
 
 
-def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: IntArray, window: DistanceWindow, *,
-                res: float, step_cells: float, interior: bool) -> FloatArray:
+def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: IntArray,
+                distance: NDArray[np.float32], *, res: float, step_cells: float, interior: bool) -> FloatArray:
     """For each ellipse (grid-frame metres): the max over samples of its boundary, or of its disc
     (`interior`), about `step_cells` apart, of the distance to the blocked region; +inf for one that
-    reaches outside its halo box (rows r0…r1, columns c0…c1, in cells)."""
+    reaches outside its halo box (rows r0…r1, columns c0…c1, in cells). The box's last four numbers say
+    where its window is in `distance`: where it starts, its first row and column, its width."""
     ext = np.hypot(semi[:, 0:1] * axes[:, :, 0], semi[:, 1:2] * axes[:, :, 1])  # extent along x and y, metres
     c = centre / res
     e = ext / res
@@ -391,16 +413,20 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
     if interior:  # sunflower: evenly spread over the disc
         radius = np.sqrt((step + 0.5) / counts[owner])
         theta = step * _GOLDEN_RAD
+        u, v = radius * np.cos(theta), radius * np.sin(theta)
     else:
-        radius = 1.0
         theta = (2.0 * np.pi) * step / counts[owner]
-    x, y = radius * np.cos(theta) * semi[k, 0][owner], radius * np.sin(theta) * semi[k, 1][owner]
-    V = axes[k][owner]
-    gx = centre[k, 0][owner] + V[:, 0, 0] * x + V[:, 0, 1] * y
-    gy = centre[k, 1][owner] + V[:, 1, 0] * x + V[:, 1, 1] * y
-    i = np.floor(gx / res).astype(np.intp) - window.col0
-    j = np.floor(gy / res).astype(np.intp) - window.row0
-    out[k] = np.maximum.reduceat(window.distance[j, i], offsets)
+        u, v = np.cos(theta), np.sin(theta)
+    # A sample (u, v) of the unit disc, in cells from its window's corner: c + V diag(semi) (u, v) / res,
+    # its coefficients formed once per ellipse. Inside the box, so inside the window: ≥ 0, and a cast
+    # truncates as the floor does.
+    start, row0, col0, width = (boxes[k, column] for column in (4, 5, 6, 7))
+    cx, cy = centre[k, 0] / res - col0, centre[k, 1] / res - row0
+    sa, sb = semi[k, 0] / res, semi[k, 1] / res
+    xu, xv, yu, yv = axes[k, 0, 0] * sa, axes[k, 0, 1] * sb, axes[k, 1, 0] * sa, axes[k, 1, 1] * sb
+    i = (cx[owner] + xu[owner] * u + xv[owner] * v).astype(np.intp)
+    j = (cy[owner] + yu[owner] * u + yv[owner] * v).astype(np.intp)
+    out[k] = np.maximum.reduceat(distance[start[owner] + j * width[owner] + i], offsets)
     return out
 
 

@@ -18,16 +18,16 @@ what the query can use is built:
    lies in tiles already fitted. An optimistic coarse grid would otherwise send the corridor through a
    door the robot does not fit.
 3. The exact route search and refinement (`services.planner.core.plan_until_verified`: tangent graph,
-   convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, inside a fence
-   of thin ellipses where the corridor meets open floor (`_fence`): without it the route search, which
-   sees no wall it was not given, found its way through them, and every such way took another plan.
+   convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, the route's
+   tangent segments kept to the corridor (`_Corridor`): without that the route search, which sees no
+   wall it was not given, found its way through them, and every such way took another plan.
 4. The paths are then held against every other fitted ellipse and every tile they come near: a grown
    ellipse reaches at most `GridCover.reach_m` beyond the tiles fitted with it, so a path further than
    that from every tile not fitted can touch no ellipse those tiles will get. If they touch or come near
    one, it is fitted and added and the plan made again. The path returned touches no ellipse of the
    whole map's cover, and its route is the shortest among a subset of them within the corridor: the
    exact optimum of the model within its corridor (a relaxation's optimum that is feasible is optimal).
-   A fenced search that finds nothing is made again without the fence; one without it that finds no
+   A search kept to the corridor that finds nothing is made again without it; one without it that finds no
    route among some of the ellipses proves there is none among all of them.
 """
 
@@ -46,8 +46,9 @@ from scipy.spatial import cKDTree
 
 from services.geometry import Ellipse, EllipseStack, FloatArray
 from schemas.occupancy import OccupancyGrid
-from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridCoverSettings, GridPiece, IntArray
+from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridPiece, IntArray
 from services.planner.core import PathPlan
+from services.planner.route import KeepTo
 from services.smoother.core import Smoothed
 
 _DIAGONAL = math.sqrt(2.0)
@@ -60,10 +61,12 @@ _CURVE_LEVEL = 1.002
 @dataclass(frozen=True)
 class CorridorSettings:
     coarse_m: float = 0.2  # side of a coarse cell (rounded to a whole number of cells)
-    slack: float = 0.05  # the corridor: coarse cells on a path at most this much longer than the shortest
+    # The corridor: coarse cells on a path at most this much longer than the shortest; above the graph's
+    # metric error (2.7 %, `_STEPS`), which a route the optimum follows may be charged.
+    slack: float = 0.03
     band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
-    near_m: float = 0.6  # ... and their ellipses within this of it planned among (the fence is 2 cells out)
-    fence: bool = True  # search the route inside the corridor (see `_fence`)
+    near_m: float = 0.4  # ... and their ellipses within this of it planned among
+    keep_to_corridor: bool = True  # search the route within the corridor (see `_Corridor`)
     keep_m: float = 1.5  # the corridor keeps this much round the start and goals
     max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
     max_rounds: int = 12  # plans at most while the path keeps meeting ellipses not planned among
@@ -80,6 +83,7 @@ class CoarseRoute:
     length_m: float = 0.0
     reason: str = ""
     cells: np.ndarray | None = None  # the corridor's coarse cells (a mask of the coarse grid)
+    leg_lengths_m: tuple[float, ...] = ()  # of the string-pulled path, waypoint to waypoint
 
 
 @dataclass(eq=False)
@@ -92,6 +96,7 @@ class CoarseGrid:
     coarse_m: float
     passable: np.ndarray = field(init=False)
     _graph: tuple[np.ndarray, sparse.csr_array] | None = field(init=False, default=None)
+    _closed: bool = field(init=False, default=False)  # cells closed since the graph's weights were set
 
     def __post_init__(self) -> None:
         res = self.grid.resolution_m
@@ -122,16 +127,23 @@ class CoarseGrid:
         close = (best < self.margin_m - res / _DIAGONAL) & self.passable[b0:b1, a0:a1]
         if close.any():
             self.passable[b0:b1, a0:a1] &= ~close
-            self._graph = None
+            self._closed = True
         return int(close.sum() if watch is None else (close & watch[b0:b1, a0:a1]).sum())
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
-        """(coarse cell of each node, the graph), rebuilt after a refinement."""
+        """(coarse cell of each node, the graph): built once; a refinement only closes cells, so the edges
+        touching a closed one are then given an infinite weight (Dijkstra relaxes none of them)."""
         if self._graph is None:
             nodes = np.flatnonzero(self.passable)
             index = np.full(self.passable.shape, -1, dtype=np.int64)
             index.flat[nodes] = np.arange(len(nodes))
             self._graph = (nodes, _grid_graph(self.passable, index, self.s))
+        elif self._closed:
+            nodes, graph = self._graph
+            shut = ~self.passable.flat[nodes]
+            rows = np.repeat(np.arange(len(nodes)), np.diff(graph.indptr))
+            graph.data[shut[rows] | shut[graph.indices]] = np.inf
+        self._closed = False
         return self._graph
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
@@ -182,27 +194,23 @@ class CoarseGrid:
         path[ends] = g - 1.0  # the waypoints themselves, each a vertex of the string-pulled path
         keep = np.zeros(len(path), dtype=bool)
         keep[ends] = True
-        points = self.grid.to_world(_pulled(path, self.passable, keep=keep) * self.s)
+        kept = _pulled(path, self.passable, keep=keep)
+        points = self.grid.to_world(path[kept] * self.s)
         corridor = self.grid.to_world(centres(np.flatnonzero(near)) * self.s)
         mask = np.zeros(self.passable.shape, dtype=bool)
         mask.flat[nodes[near]] = True
-        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask)
-
-    def cells_grid(self, mask: np.ndarray) -> OccupancyGrid:
-        """The coarse cells as a grid of their own (same frame; the ring included), those off `mask` blocked."""
-        R = self.grid.rotation
-        origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m]) - R @ np.array([self.s, self.s])
-        yaw = math.atan2(R[1, 0], R[0, 0])
-        return OccupancyGrid.from_mask(~mask, resolution_m=self.s, origin=(origin[0], origin[1], yaw),
-                                       source="corridor")
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        at_waypoints = along[np.searchsorted(kept, ends)]
+        return CoarseRoute("ok", points, corridor, length_m=total, cells=mask,
+                           leg_lengths_m=tuple(np.diff(at_waypoints).tolist()))
 
 
-def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> FloatArray:
-    """The path (coarse-cell coordinates from the map's corner) with every vertex dropped that a straight
-    line over passable coarse cells can skip (string pulling): an 8-connected path wanders between
-    equally long ones, and the route it stands for is straight. Greedy: from each vertex kept, the
-    furthest later vertex in sight by bisection (sight: samples a quarter cell apart on passable cells);
-    the vertices marked `keep` stay."""
+def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> IntArray:
+    """The vertices of the path (coarse-cell coordinates from the map's corner) that string pulling keeps,
+    in order: every vertex is dropped that a straight line over passable coarse cells can skip (an
+    8-connected path wanders between equally long ones, and the route it stands for is straight).
+    Greedy: from each vertex kept, the furthest later vertex in sight by bisection (sight: samples a
+    quarter cell apart on passable cells); the vertices marked `keep` stay."""
 
     def clear(p: FloatArray, q: FloatArray) -> bool:
         n = int(math.ceil(4.0 * float(np.max(np.abs(q - p))))) + 1
@@ -222,7 +230,7 @@ def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> Floa
             else:
                 hi = mid - 1
         out.append(lo)
-    return path[out]
+    return np.asarray(out)
 
 
 # Steps of the coarse graph: the 8 neighbours and the 8 knight's moves, one of each pair of opposites. With
@@ -269,7 +277,7 @@ class CorridorPlan:
     tiles_total: int
     searches: int
     rounds: int
-    fence: int = 0  # ellipses of the fence round the corridor the route was searched in (0: none)
+    kept_to_corridor: bool = False  # the route was searched within the corridor (`_Corridor`)
 
 
 def plan_in_corridor(
@@ -277,7 +285,7 @@ def plan_in_corridor(
     cover: GridCover,
     waypoints: FloatArray,
     fixed: list[Ellipse],
-    plan_fn: Callable[[list[Ellipse]], tuple[PathPlan, Smoothed | None]],
+    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None], tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
 ) -> CorridorPlan:
@@ -287,8 +295,10 @@ def plan_in_corridor(
     The plan is made among the fixed ellipses and the fitted ones that come within `near_m` of the
     corridor; then the paths are checked against every other fitted ellipse (the exact segment test on
     the refined points, and on the smoothed curve's samples at `_CURVE_LEVEL`) and against the tiles
-    not fitted, and planned again with whatever they touch. `plan_fn(grown)` plans on a list of grown
-    ellipses (`cvxnav.plan.plan_on_model`); `timer(stage)` wraps the "corridor" and "fit" steps.
+    not fitted, and planned again with whatever they touch. `plan_fn(grown, leg_lengths_m, keep_to)`
+    plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length on the coarse
+    grid (where the route search starts its bounds) and where the route may go (the corridor, or None);
+    `timer(stage)` wraps the "corridor" and "fit" steps.
     """
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
@@ -320,15 +330,16 @@ def plan_in_corridor(
     with timer("fit"):
         fitted = cover.pieces(tiles)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
-        fence = _fence(coarse_grid, coarse, waypoints, keep_m=settings.keep_m) if settings.fence else []
+        keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
+                   if settings.keep_to_corridor else None)
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
-        plan, smoothed = plan_fn(grown + fence)
+        plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to)
         if plan.status != "ok" or smoothed is None or not smoothed.verification.ok:
-            if not fence:
+            if keep_to is None:
                 break  # no route among a subset of the ellipses: none among all of them
-            fence = []  # the fence may have closed the corridor (its cells are coarse): plan without it
+            keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
             continue
         with timer("fit"):
             new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
@@ -342,32 +353,48 @@ def plan_in_corridor(
             if not len(hit):
                 break
             used += [others[k] for k in hit.tolist()]
-    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, len(fence))
+    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, keep_to is not None)
 
 
-def _fence(coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, *, keep_m: float) -> list[Ellipse]:
-    """Ellipses round the corridor: the passable coarse cells off it that touch it (a band one coarse cell
-    wide), covered as walls are (at the coarse grid's resolution, a loose tolerance), so that the route
-    search stays in the corridor rather than find a way through walls it was not given. Where the
-    corridor meets impassable cells (walls within the margin) there is no fence: the walls' own ellipses
-    are there, and a fence's would bulge into a corridor no wider than the passage. The corridor is
-    widened by a coarse cell and by a disc of `keep_m` round each waypoint (a route leaves its start
-    along the heading before it turns)."""
-    mask = ndimage.binary_dilation(coarse.cells, structure=np.ones((3, 3), dtype=bool))
-    nr, nc = mask.shape
-    rows, cols = np.mgrid[0:nr, 0:nc]
-    g = coarse_grid.grid.to_grid(waypoints) / coarse_grid.s + 0.5  # centres' coordinates: cell + 0.5 − ring
-    radius = keep_m / coarse_grid.s
-    for gx, gy in g:
-        mask |= (cols - gx) ** 2 + (rows - gy) ** 2 <= radius**2
-    band = ndimage.binary_dilation(mask, structure=np.ones((3, 3), dtype=bool)) & ~mask & coarse_grid.passable
-    cells = coarse_grid.cells_grid(~band)
-    fence = GridCover(cells, margin_m=0.5 * coarse_grid.s,
-                      settings=GridCoverSettings(tolerance_m=2.0 * coarse_grid.s, tile_m=32 * coarse_grid.s,
-                                                 halo_m=8 * coarse_grid.s, join_m=0.0))
-    b, a = np.nonzero(band)  # the fence's tiles are those its band's cells are in
-    return [piece.raw for piece in fence.pieces(fence.tiles_near(cells.to_world((np.column_stack([a, b]) + 0.5)
-                                                                                 * coarse_grid.s), 0.0))]
+@dataclass(frozen=True)
+class _Corridor:
+    """Where the route may go: anywhere but the passable coarse cells off the corridor (widened by a coarse
+    cell, and by a disc of `keep_m` round each waypoint: a route leaves its start along the heading before
+    it turns) and beyond the coarse grid. Those are the open floor and the rooms beyond the corridor, which
+    the ellipses the route is searched among (the walls near the corridor) do not close off; impassable
+    cells are walls within the margin, whose own ellipses bound the route. A tangent segment that touches
+    one of them is no edge of the route search (`services.planner.route.shortest_route`)."""
+
+    grid: CoarseGrid
+    off: np.ndarray  # coarse cells a segment may not touch, with a ring of them round the grid
+
+    @classmethod
+    def of(cls, coarse_grid: CoarseGrid, coarse: CoarseRoute, waypoints: FloatArray, *, keep_m: float) -> _Corridor:
+        mask = ndimage.binary_dilation(coarse.cells, structure=np.ones((3, 3), dtype=bool))
+        nr, nc = mask.shape
+        rows, cols = np.mgrid[0:nr, 0:nc]
+        g = coarse_grid.grid.to_grid(waypoints) / coarse_grid.s + 0.5  # centres' coordinates: cell + 0.5 − ring
+        radius = keep_m / coarse_grid.s
+        for gx, gy in g:
+            mask |= (cols - gx) ** 2 + (rows - gy) ** 2 <= radius**2
+        return cls(coarse_grid, np.pad(coarse_grid.passable & ~mask, 1, constant_values=True))
+
+    def __call__(self, starts: FloatArray, ends: FloatArray) -> np.ndarray:
+        """Whether each segment keeps off the cells it may not touch, sighted at points half a coarse cell
+        apart (it confines the search; what the path touches is checked exactly afterwards)."""
+        if not len(starts):
+            return np.zeros(0, dtype=bool)
+        s = self.grid.s
+        p = self.grid.grid.to_grid(starts) / s + 2.0  # coarse cells, counting the grid's ring and ours
+        d = self.grid.grid.to_grid(ends) / s + 2.0 - p
+        n = np.ceil(2.0 * np.max(np.abs(d), axis=1)).astype(np.intp) + 1
+        offsets = np.cumsum(n) - n
+        owner = np.repeat(np.arange(len(n)), n)
+        t = (np.arange(len(owner)) - offsets[owner]) / np.maximum(n[owner] - 1, 1)
+        c = np.floor(p[owner] + t[:, None] * d[owner]).astype(np.intp)
+        rows, cols = self.off.shape
+        c[:, 0], c[:, 1] = np.clip(c[:, 0], 0, cols - 1), np.clip(c[:, 1], 0, rows - 1)
+        return ~np.logical_or.reduceat(self.off[c[:, 1], c[:, 0]], offsets)
 
 
 def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:

@@ -9,7 +9,7 @@ sampled like a refined path, without running the refinement.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from itertools import accumulate, chain
@@ -19,7 +19,7 @@ import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray
 from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
-from services.planner.route import tangent_route
+from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
 
 _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel need no turn
@@ -79,8 +79,10 @@ def _straight(
     bounds_min: FloatArray,
     bounds_max: FloatArray,
     settings: RefineSettings,
+    keep_to: KeepTo | None = None,
 ) -> PathPlan | None:
-    """The straight line start → goals when it needs no turn and clears every ellipse, else None.
+    """The straight line start → goals when it needs no turn, clears every ellipse and keeps to where the
+    route may go (`keep_to`, if given), else None.
 
     Sampled as `resample_legs` samples the legs: each leg gets its share of the points evenly spaced
     in arc length, p + d s (d the unit direction, s = k L / count), and ends at its goal exactly.
@@ -107,6 +109,8 @@ def _straight(
     # A leg or two against every ellipse: the exact test on all pairs is cheaper than a broad phase.
     if not stack.polyline_level(waypoints) >= settings.level:
         return None
+    if keep_to is not None and not np.all(keep_to(np.array(waypoints[:-1]), np.array(waypoints[1:]))):
+        return None
     lengths = [length for _, _, length in legs]
     n = max(math.ceil(sum(lengths) / settings.spacing_m) + 1, len(goals) + 2)
     counts = leg_counts(lengths, n=n)
@@ -132,6 +136,8 @@ def _route(
     bounds_max: FloatArray,
     level: float,
     extra_m: float,
+    estimate_m: Sequence[float] | None,
+    keep_to: KeepTo | None,
 ) -> list[FloatArray] | None:
     """Legs of the shortest route, after a straight lead-in start → origin (none when origin is start),
     round ellipses enlarged by `extra_m`. The caller has checked the lead-in against the ellipses
@@ -142,11 +148,13 @@ def _route(
         if origin is not start and len(intersected(np.vstack([start, origin]), grown, level=level)):
             return None
     reference = np.vstack([origin, goals])
-    if len(intersected(reference, grown, level=level)) == 0:
+    if len(intersected(reference, grown, level=level)) == 0 and (
+            keep_to is None or np.all(keep_to(reference[:-1], reference[1:]))):
         legs = [reference[k : k + 2] for k in range(len(goals))]
     else:
         legs = tangent_route(
-            start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level
+            start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level,
+            estimate_m=estimate_m, keep_to=keep_to,
         )
     if legs is not None and origin is not start:
         legs[0] = np.vstack([start, legs[0]])
@@ -163,8 +171,13 @@ def plan_path(
     bounds_max: FloatArray,
     max_curvature: float,
     settings: RefineSettings = RefineSettings(),
+    route_estimate_m: Sequence[float] | None = None,
+    route_keep_to: KeepTo | None = None,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
+
+    `route_estimate_m`: each leg's length as a coarser search found it, where the route search starts
+    its bounds; `route_keep_to`: where the route may go, a corridor (`route.shortest_route`).
 
     The route search ignores curvature, so its shortest route can demand a turn the car cannot make
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
@@ -183,6 +196,7 @@ def plan_path(
         bounds_min=bounds_min,
         bounds_max=bounds_max,
         settings=settings,
+        keep_to=route_keep_to,
     )
     # A line clear of every ellipse at a level above 1 has its ends outside them: no need to check.
     if straight is not None and settings.level > 1.0:
@@ -215,6 +229,8 @@ def plan_path(
             bounds_max=bounds_max,
             level=settings.level,
             extra_m=extra_m,
+            estimate_m=route_estimate_m,
+            keep_to=route_keep_to,
         )
         if legs is None:
             if best is None and not lead_in and extra_m == 0.0:

@@ -28,12 +28,18 @@ penalty): every subproblem is feasible — a robot that has just sensed an obsta
 goal inside a newly grown cover, would otherwise make it infeasible — and an unattainable constraint
 shows up as slack rather than as a solver failure. The exact checks downstream (the refined path
 outside every ellipse, the smoother's proof on the continuous curve) decide what is published.
+
+A long route that is mostly straight (a corridor on a building's map) can be refined in windows: only
+round the points where it breaks the curvature bound and round its start, the rest kept as the route has
+it (`refine_in_windows`), so that the solves cost what the turns hold rather than what the route's
+length does.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import clarabel
@@ -70,6 +76,10 @@ class RefineSettings:
     slack_weight: float = 1e3
     backend: str = "clarabel"  # "clarabel": Clarabel called directly; "cvxpy": the reference model
     solver: str = "CLARABEL"  # the cvxpy backend's solver
+    # Refine only the stretches within this many turning radii of where the route breaks the curvature
+    # bound or leaves the start off its heading, each on its own with its ends pinned to the route
+    # (`refine_in_windows`); None: the whole route at once.
+    window_radii: float | None = None
 
 
 @dataclass(frozen=True)
@@ -479,9 +489,14 @@ def _linearise(
 
 def _curvature_met(z: FloatArray, kappa: float) -> bool:
     """Whether the discrete curvature of the points, measured with their actual spacing, is within kappa."""
+    return not np.any(_curvature_broken(z, kappa))
+
+
+def _curvature_broken(z: FloatArray, kappa: float) -> np.ndarray:
+    """For each interior point, whether its discrete curvature (measured with the actual spacing) exceeds kappa."""
     step = np.linalg.norm(np.diff(z, axis=0), axis=1)
     second = np.linalg.norm(z[2:] - 2 * z[1:-1] + z[:-2], axis=1)
-    return bool(np.all(second <= kappa * np.minimum(step[:-1], step[1:]) ** 2 * (1 + 1e-3) + 1e-9))
+    return ~(second <= kappa * np.minimum(step[:-1], step[1:]) ** 2 * (1 + 1e-3) + 1e-9)
 
 
 def refine(
@@ -493,11 +508,17 @@ def refine(
     max_curvature: float,
     heading_rad: float | None = None,
     settings: RefineSettings = RefineSettings(),
+    at_robot: bool = True,
 ) -> Refined:
     """Refine a route (one polyline per leg, start → goal₁ → …) into the shortest drivable path.
 
-    Raises `SolverFailure` if a subproblem fails; the caller verifies the result either way.
+    `at_robot`: the start is the robot's pose (see `start_level`); a window of the route
+    (`refine_in_windows`) starts on the route instead. Raises `SolverFailure` if a subproblem fails; the
+    caller verifies the result either way.
     """
+    if settings.window_radii is not None:
+        return refine_in_windows(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                                 max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
     total = sum(polyline_length(leg) for leg in legs)
     n = _bucket(int(np.ceil(total / settings.spacing_m)) + 1)
     z, goal_indices = resample_legs(legs, n=n)
@@ -506,7 +527,7 @@ def refine(
     # close ahead cannot give that room within its first turning radius, so there the plan only has to
     # stay outside (the smoother still proves the continuous curve clear).
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
-    first_turn = along < 1.0 / max_curvature
+    first_turn = (along < 1.0 / max_curvature) & at_robot
     level = np.where(first_turn, min(settings.start_level, settings.level), settings.level)
     # Clarabel's first solve keeps the step and trust-region bounds over that stretch (`_ClarabelOnDemand`),
     # its point count rounded up to a multiple of 8 so that similar plans share one compiled problem.
@@ -573,3 +594,172 @@ def refine(
         iterations=iterations,
         curvature_slack=float(np.max(slack, initial=0.0)),
     )
+
+
+_MET_SLACK = 1e-6  # a curvature slack at most this is a met bound (as `plan_path` takes it)
+_ALONG_COS = math.cos(1e-6)  # a first step within 1e-6 rad of the heading is along it
+_PIN_TOLERANCE_M = 0.02  # a window's path this close to the route near a pinned end has come back onto it
+
+
+def refine_in_windows(
+    *,
+    legs: list[FloatArray],
+    ellipses: list[Ellipse],
+    bounds_min: FloatArray,
+    bounds_max: FloatArray,
+    max_curvature: float,
+    heading_rad: float | None,
+    settings: RefineSettings,
+) -> Refined:
+    """The route refined only where it needs it: each stretch within `window_radii` turning radii (arc
+    length) of a point that breaks the curvature bound, or of the start when the route does not leave it
+    along the heading, on its own; the rest of the route is kept as it is.
+
+    The route (`route.tangent_route`) is the model's exact shortest path without the curvature bound:
+    tangent segments and arcs round the ellipses, at the planning level. Where its points, sampled as the
+    refinement samples them, meet the curvature bound and leave the start along the heading, it is what
+    the refinement's first solve would confirm (as `plan_path` returns a clear straight reference
+    unrefined); only its sharp turns and its start need the curvature and heading work, and a solve then
+    costs what its window holds, not what the route's length does. Each window's ends are pinned to the
+    route — its first point, with the route's direction there as its heading, and its last two points, as
+    the planner stage's repair pins the plan it keeps — so each kept neighbour is collinear with the
+    pinned ends and the curvature bound holds across every join. A window whose curvature bound is not
+    met, or whose path still moves off the route near a pinned end (the pins, not the turn, decided it
+    there), is widened, by twice as much each time, and merged with the windows it reaches; one that
+    reaches the whole route is the whole refinement (`refine` without windows). The caller verifies the
+    path whole, as any refined path.
+    """
+    whole = replace(settings, window_radii=None)
+    total = sum(polyline_length(leg) for leg in legs)
+    z, goal_indices = resample_legs(legs, n=int(np.ceil(total / settings.spacing_m)) + 1)
+    n = len(z)
+    length = np.linalg.norm(np.diff(z, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(length)])
+    radius = 1.0 / (settings.curvature_factor * max_curvature)
+    reach = settings.window_radii * radius
+    sharp = 1 + np.flatnonzero(_curvature_broken(z, settings.curvature_met_factor * max_curvature))
+    intervals = [(along[k] - reach, along[k] + reach) for k in sharp.tolist()]
+    if heading_rad is not None:
+        first = (z[1] - z[0]) / length[0]
+        off = math.acos(min(1.0, max(-1.0, first[0] * math.cos(heading_rad) + first[1] * math.sin(heading_rad))))
+        if math.cos(off) < _ALONG_COS:
+            # Swinging onto the route takes about a turning radius per radian, and as much again to come
+            # back onto its line: the start's window is that much longer.
+            intervals.append((-reach, reach + 4.0 * off * radius))
+    if not intervals:
+        return Refined(points=z, goal_indices=goal_indices, iterations=0, curvature_slack=0.0)
+    gap = 2.0 * float(length.max())  # windows closer than two steps are one: their points would meet
+    intervals = _merged(intervals, gap=gap)
+    solved: dict[tuple[int, int], Refined] = {}
+    widen = reach
+    while True:
+        spans = _spans(along, intervals)
+        intervals = [(along[a], along[b]) for a, b in spans]
+        if spans == [(0, n - 1)]:
+            return refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                          max_curvature=max_curvature, heading_rad=heading_rad, settings=whole)
+        for a, b in spans:
+            if (a, b) not in solved:
+                solved[a, b] = _refine_window(z, a, b, goal_indices=goal_indices, ellipses=ellipses,
+                                              bounds_min=bounds_min, bounds_max=bounds_max,
+                                              max_curvature=max_curvature, heading_rad=heading_rad, settings=whole)
+        unmet = [solved[a, b].curvature_slack > _MET_SLACK or _held_by_its_ends(z, a, b, solved[a, b].points, reach)
+                 for a, b in spans]
+        if not any(unmet):
+            break
+        widen *= 2.0
+        intervals = _merged([(lo - widen, hi + widen) if bad else (lo, hi)
+                             for (lo, hi), bad in zip(intervals, unmet)], gap=gap)
+    # The kept stretches and the windows' points, in order; where each goal ends up.
+    parts, index = [], np.full(n, -1)
+    count = cursor = 0
+    for a, b in spans:
+        parts.append(z[cursor:a])
+        index[cursor:a] = count + np.arange(a - cursor)
+        count += a - cursor
+        window = solved[a, b]
+        index[[a, *_cuts(a, b, n=n, goal_indices=goal_indices)]] = count + np.array([0, *window.goal_indices])
+        parts.append(window.points)
+        count += len(window.points)
+        cursor = b + 1
+    parts.append(z[cursor:])
+    index[cursor:] = count + np.arange(n - cursor)
+    return Refined(
+        points=np.vstack(parts),
+        goal_indices=tuple(int(index[g]) for g in goal_indices),
+        iterations=sum(solved[span].iterations for span in spans),
+        curvature_slack=max(solved[span].curvature_slack for span in spans),
+    )
+
+
+def _merged(intervals: list[tuple[float, float]], *, gap: float) -> list[tuple[float, float]]:
+    """Intervals less than `gap` apart joined, in order."""
+    out: list[tuple[float, float]] = []
+    for lo, hi in sorted(intervals):
+        if out and lo <= out[-1][1] + gap:
+            out[-1] = (out[-1][0], max(out[-1][1], hi))
+        else:
+            out.append((lo, hi))
+    return out
+
+
+def _span(along: FloatArray, lo: float, hi: float) -> tuple[int, int]:
+    """The points (first, last) of a window covering the arc lengths lo … hi: from the last point at or
+    before lo to the first at or after hi, widened to a multiple of 32 points (`_bucket`: the refinement
+    then samples the window as the route does, and windows share compiled problems)."""
+    n = len(along)
+    a = max(int(np.searchsorted(along, lo, side="right")) - 1, 0)
+    b = min(int(np.searchsorted(along, hi, side="left")), n - 1)
+    size = _bucket(b - a + 1)
+    b = min(a + size - 1, n - 1)
+    return max(b - size + 1, 0), b
+
+
+def _held_by_its_ends(z: FloatArray, a: int, b: int, points: FloatArray, reach_m: float) -> bool:
+    """Whether a window's refined path has not come back most of the way onto the route within half a
+    reach of a pinned end (not the robot's start nor the route's end): some point there lies more than
+    `_PIN_TOLERANCE_M` and a quarter of the window's largest move off the route's, so the pin rather than
+    the turn shaped the path there."""
+    # The window's points are the route's a … b resampled evenly along it (`_span`): point k is near a + k s.
+    route = z[a + np.round(np.linspace(0.0, b - a, len(points))).astype(np.intp)]
+    off = np.linalg.norm(points - route, axis=1)
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
+    ends = np.zeros(len(points), dtype=bool)
+    if a > 0:
+        ends |= along <= 0.5 * reach_m
+    if b < len(z) - 1:
+        ends |= along >= along[-1] - 0.5 * reach_m
+    return bool(np.any(off[ends] > max(_PIN_TOLERANCE_M, 0.25 * float(off.max()))))
+
+
+def _spans(along: FloatArray, intervals: list[tuple[float, float]]) -> list[tuple[int, int]]:
+    """The windows' points (`_span`), those that overlap or touch once widened joined into one."""
+    spans: list[tuple[int, int]] = []
+    for lo, hi in intervals:
+        a, b = _span(along, lo, hi)
+        while spans and a <= spans[-1][1] + 1:
+            first, last = spans.pop()
+            a, b = _span(along, along[min(a, first)], along[max(b, last)])
+        spans.append((a, b))
+    return spans
+
+
+def _cuts(a: int, b: int, *, n: int, goal_indices: tuple[int, ...]) -> list[int]:
+    """A window's leg ends after its first point: the goals inside it, then its last two points (pinned,
+    unless the last is the route's end, the final goal)."""
+    ends = {g for g in goal_indices if a < g <= b} | {b}
+    if b < n - 1:
+        ends.add(b - 1)
+    return sorted(ends)
+
+
+def _refine_window(z: FloatArray, a: int, b: int, *, goal_indices: tuple[int, ...], ellipses: list[Ellipse],
+                   bounds_min: FloatArray, bounds_max: FloatArray, max_curvature: float,
+                   heading_rad: float | None, settings: RefineSettings) -> Refined:
+    """Points a … b of the route refined on their own, ends pinned (see `refine_in_windows`)."""
+    cuts = [a, *_cuts(a, b, n=len(z), goal_indices=goal_indices)]
+    legs = [z[c0 : c1 + 1] for c0, c1 in zip(cuts, cuts[1:])]
+    if a > 0:
+        heading_rad = math.atan2(z[a + 1, 1] - z[a, 1], z[a + 1, 0] - z[a, 0])
+    return refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                  max_curvature=max_curvature, heading_rad=heading_rad, settings=settings, at_robot=a == 0)

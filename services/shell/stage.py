@@ -48,6 +48,7 @@ from collections import deque
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TypeVar
 
 import zenoh
 from pydantic import BaseModel
@@ -81,6 +82,7 @@ from services.contract import (
 from services.convert import LocalFrame
 from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.shell.checkpoint import Checkpoint
+from services.shell.watchdog import Progress
 from services.shell.ros2 import BridgePorts
 
 logger = logging.getLogger(__name__)
@@ -173,7 +175,40 @@ def install_signal_handlers(stop_event: threading.Event) -> None:
 _STATUS = "\0status"  # queue tags of the inputs that are not topics
 _ALIVE = "\0alive"
 _ROS = "\0ros/"  # + the port: a ROS 2 topic's sample
-DRAIN_S = 2.0  # a stopping source or sink handles what already arrived, until quiet or this long
+DRAIN_S = 1.0  # a stopping source or sink handles what already arrived, until quiet or this long
+# After a stop, how long the process waits for its worker (a solve in progress) before it exits without
+# it: within the 2 s an operator, systemd or `docker stop` may expect, with room for the interpreter's exit.
+STOP_GRACE_S = 1.5
+T = TypeVar("T")
+
+
+def run_in_worker(work: Callable[[], T], *, stop_event: threading.Event,
+                  grace_s: float = STOP_GRACE_S) -> tuple[bool, T | None]:
+    """Run `work` in a worker thread while the calling (main) thread stays free for signals.
+
+    Returns (True, its result) once it ends, or (False, None) when it is still busy `grace_s` after
+    `stop_event` was set: a core in a long solve (native code, which a signal handler cannot
+    interrupt) must not hold the process, so the caller exits without it. An exception in `work` is
+    raised here.
+    """
+    outcome: dict[str, object] = {}
+
+    def target() -> None:
+        try:
+            outcome["result"] = work()
+        except BaseException as error:  # handed to the main thread, which raises it
+            outcome["error"] = error
+
+    worker = threading.Thread(target=target, name="stage-worker", daemon=True)
+    worker.start()
+    while worker.is_alive() and not stop_event.wait(0.1):
+        pass
+    worker.join(grace_s)
+    if worker.is_alive():
+        return False, None
+    if "error" in outcome:
+        raise outcome["error"]  # type: ignore[misc]
+    return True, outcome.get("result")  # type: ignore[return-value]
 
 
 class _Shell:
@@ -414,6 +449,7 @@ def run_stage(
     tick_period_s: float | None = None,
     ready_event: threading.Event | None = None,
     state_dir: Path | None = None,
+    progress: Progress | None = None,
     frame: LocalFrame = LocalFrame(),
 ) -> None:
     """Run ``stage`` (a process of the wiring table) with ``core`` until ``stop_event`` is set, or the
@@ -424,8 +460,10 @@ def run_stage(
     ``tick_period_s``, between inputs. ``ready_event`` is set once the process is declared. With
     ``state_dir``, a ``Stateful`` core gets back the state saved there and saves it there. The core
     works in ``frame`` (built from ``frame.scenario_to_local``): every message it is handed is moved
-    into it, every one it publishes back into the world frame of the keys.
+    into it, every one it publishes back into the world frame of the keys. ``progress`` is told when
+    each pass of the loop begins (the heartbeat's evidence, ``services.shell.watchdog``).
     """
+    progress = progress or Progress()
     spec = PROCESSES[stage]
     checkpoint = None
     if state_dir is not None and isinstance(core, Stateful):
@@ -433,15 +471,18 @@ def run_stage(
         checkpoint.restore(core)
     with zenoh.open(session_config) as session, ExitStack() as declarations:
         declare = declarations.enter_context
+        # Every publisher drops on a congested link rather than wait: a reader that stops reading (a dead
+        # monitor link) would otherwise stall this process, and behind it the whole loop, for Zenoh's
+        # 5 s `wait_before_close`. The sim sends again the scan it waits for (``sim.stage``).
         publishers = {
             topic: declare(session.declare_publisher(
                 key(prefix, topic), encoding=zenoh.Encoding(model_for(topic).encoding()),
-                congestion_control=zenoh.CongestionControl.BLOCK if TOPICS[topic].block else zenoh.CongestionControl.DROP))
+                congestion_control=zenoh.CongestionControl.DROP))
             for topic in spec.publishes
         }
-        status_publisher = declare(
-            session.declare_publisher(status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()))
-        )
+        status_publisher = declare(session.declare_publisher(
+            status_key(prefix, stage), encoding=zenoh.Encoding(StageStatus.encoding()),
+            congestion_control=zenoh.CongestionControl.DROP))
         shell = _Shell(spec=spec, core=core, prefix=prefix, publishers=publishers, status_publisher=status_publisher,
                        max_payload_bytes=max_payload_bytes, clock=clock, checkpoint=checkpoint, frame=frame)
         inbox = Inbox()
@@ -476,6 +517,7 @@ def run_stage(
             ready_event.set()
         periodic_s = time.monotonic()
         while not stop_event.is_set() and not shell.done:
+            progress.beat()
             until_tick_s = STOP_CHECK_S
             if shell.scheduled:
                 due_s = shell.next_tick_s()

@@ -19,6 +19,9 @@ import zenoh
 
 Mode = Literal["peer", "client", "router"]
 MODES: tuple[Mode, ...] = ("peer", "client", "router")
+# How often a session tries its `connect` endpoints again once a link is lost: Zenoh's default backs off
+# to 4 s, so a client found a restarted router up to 4 s after it was back (and the car stood as long).
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 
 # Zenoh's link protocols (zenoh/io/zenoh-links): those whose address is host:port, and the rest.
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -84,7 +87,8 @@ def build_zenoh_config(
     config_file: Path | None = None,
     mode: Mode | None = None,
 ) -> zenoh.Config:
-    """Start from ``config_file`` (or Zenoh's defaults, mode ``peer``) and apply the overrides.
+    """Start from ``config_file`` (or Zenoh's defaults, mode ``peer``) and apply the overrides; ``connect``
+    endpoints are retried every second at most (``RECONNECT``).
 
     ``mode=None`` keeps the file's mode (or Zenoh's default, ``peer``) rather than overriding it.
     """
@@ -93,6 +97,7 @@ def build_zenoh_config(
         config.insert_json5("mode", json.dumps(mode))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        config.insert_json5("connect/retry", json.dumps(RECONNECT))
     if listen:
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect or listen:

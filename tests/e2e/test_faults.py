@@ -1,4 +1,5 @@
-"""`cvxnav run` under faults: real stage processes killed with SIGKILL mid-run, and a stage that cannot start.
+"""`cvxnav run` under faults: real stage processes killed with SIGKILL, or stopped with SIGSTOP (a hang:
+the process keeps its links and its liveliness token), mid-run; and a stage that cannot start.
 
 The test finds the stage processes the way an operator would, as children of the `cvxnav run` process
 in /proc, and watches the run from outside over Zenoh: a peer of its own, connected to every stage's
@@ -29,28 +30,12 @@ from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.drive.vehicle import VehicleLimits
 from services.shell.zenoh_config import build_zenoh_config
+from stage_processes import alive, argv, stage_pids
 
 PAPER = bundled_scenario()
 PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
 PREFIX = default_prefix()
 WAIT_S = 90.0  # a guard against a hung run, not a speed requirement
-
-
-def stage_processes(parent_pid: int) -> dict[str, tuple[int, list[str]]]:
-    """The `cvxnav service NAME` children of `parent_pid`: name -> (pid, argv), read from /proc."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            argv = [arg.decode() for arg in (entry / "cmdline").read_bytes().split(b"\0") if arg]
-        except OSError:
-            continue  # exited while we looked
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == parent_pid and "service" in argv:
-            found[argv[argv.index("service") + 1]] = (int(entry.name), argv)
-    return found
 
 
 def wait_for(condition: Callable[[], object], *, what: str) -> object:
@@ -99,9 +84,11 @@ class Kill:
     stage: str
     old_pid: int
     new_pid: int
-    killed_s: float  # sim time
-    speed_mps: float  # at the kill
+    killed_s: float  # sim time of the signal
+    speed_mps: float  # at the signal
     back_s: float  # sim time the restarted stage's token was seen
+    replaced_after_s: float  # wall time from the signal to the new process
+    back_after_s: float  # wall time from the signal to its token
 
 
 def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:
@@ -110,18 +97,23 @@ def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:
     return traj[1:, 0], np.linalg.norm(np.diff(traj[:, 1:3], axis=0), axis=1) / np.diff(traj[:, 0])
 
 
-@pytest.fixture(scope="module")
-def killed_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, list[Kill]]:
-    """The paper scenario with each pipeline stage SIGKILLed once while the car drives."""
-    cwd = tmp_path_factory.mktemp("killed")
-    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json"], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+@pytest.fixture(scope="module", params=[signal.SIGKILL, signal.SIGSTOP], ids=["SIGKILL", "SIGSTOP"])
+def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, list[Kill], signal.Signals,
+                                                   Path]:
+    """The paper scenario with each pipeline stage SIGKILLed (or SIGSTOPped) once while the car drives."""
+    fault = request.param
+    cwd = tmp_path_factory.mktemp(fault.name)
+    (cwd / "tmp").mkdir()  # the run's temporary folder goes here, and is kept (--keep-logs)
+    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json", "--keep-logs"],
+                            cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, TMPDIR=str(cwd / "tmp")))
     kills: list[Kill] = []
     try:
-        children = wait_for(lambda: (found := stage_processes(proc.pid)) and "sim" in found and found,
+        children = wait_for(lambda: (found := stage_pids(proc.pid)) and "sim" in found and found,
                             what="the sim to start")
-        config = build_zenoh_config(connect=[endpoint for _, argv in children.values() for endpoint in
-                                             json.loads(Path(argv[argv.index("--config") + 1]).read_text())
+        commands = [argv(pid) for pid in children.values()]
+        config = build_zenoh_config(connect=[endpoint for args in commands for endpoint in
+                                             json.loads(Path(args[args.index("--config") + 1]).read_text())
                                              ["listen"]["endpoints"]])
         # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
         config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
@@ -135,15 +127,18 @@ def killed_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, 
                 # Kill while the car drives, some way along the route from the previous restart.
                 wait_for(lambda: observer.stamp_s >= drive_from_s and observer.speed_mps > 0.3,
                          what=f"the car to drive before killing {stage}")
-                old_pid = stage_processes(proc.pid)[stage][0]
+                old_pid = stage_pids(proc.pid)[stage]
                 with observer.lock:
                     index, killed_s, speed = len(observer.events), observer.stamp_s, observer.speed_mps
-                os.kill(old_pid, signal.SIGKILL)
-                new_pid = wait_for(lambda: (pid := stage_processes(proc.pid).get(stage, (old_pid,))[0]) != old_pid
+                signalled = time.monotonic()
+                os.kill(old_pid, fault)
+                new_pid = wait_for(lambda: (pid := stage_pids(proc.pid).get(stage, old_pid)) != old_pid
                                    and pid, what=f"a new {stage} process")
+                replaced_after_s = time.monotonic() - signalled
                 back_s = wait_for(lambda: observer.back_since(stage, index), what=f"{stage}'s token to come back")
-                kills.append(Kill(stage=stage, old_pid=old_pid, new_pid=new_pid, killed_s=killed_s,
-                                  speed_mps=speed, back_s=back_s))
+                kills.append(Kill(stage=stage, old_pid=old_pid, new_pid=new_pid, killed_s=killed_s, speed_mps=speed,
+                                  back_s=back_s, replaced_after_s=replaced_after_s,
+                                  back_after_s=time.monotonic() - signalled))
                 drive_from_s = back_s + 2.5
             for subscriber in subscribers:
                 subscriber.undeclare()
@@ -153,11 +148,14 @@ def killed_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, RunFile, 
             proc.send_signal(signal.SIGINT)  # the supervisor stops its stages on the way out
             proc.communicate(timeout=30.0)
     completed = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    return completed, RunFile.read(cwd / "run.json"), kills
+    for kill in kills:  # for docs/faults.md
+        print(f"{fault.name} {kill.stage}: replaced after {kill.replaced_after_s:.2f} s, token back after "
+              f"{kill.back_after_s:.2f} s (sim {kill.killed_s:.1f} -> {kill.back_s:.1f} s)")
+    return completed, RunFile.read(cwd / "run.json"), kills, fault, cwd / "tmp"
 
 
-def test_every_killed_stage_is_restarted_and_the_run_still_reaches_every_goal(killed_run):
-    proc, run, kills = killed_run
+def test_every_faulted_stage_is_replaced_and_the_run_still_reaches_every_goal(killed_run):
+    proc, run, kills, fault, tmp = killed_run
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert run.status == "reached" and run.goals_reached == len(PAPER.goals)
     assert run.min_clearance >= 0.5 * PAPER.robot.safety_distance
@@ -165,11 +163,19 @@ def test_every_killed_stage_is_restarted_and_the_run_still_reaches_every_goal(ki
     for kill in kills:
         assert kill.new_pid != kill.old_pid
         assert f"stage {kill.stage} restarted (pid {kill.new_pid}" in proc.stderr
+        if fault == signal.SIGSTOP:  # its keep-alives stopped: the supervisor killed it
+            assert f"stage {kill.stage} hung (no keep-alive for" in proc.stderr
     assert "stage restarts 4" in proc.stdout
+    # Nothing is left behind: neither the stopped processes nor any other of the run.
+    assert not [pid for kill in kills for pid in (kill.old_pid, kill.new_pid) if alive(pid)]
+    # A run that reached its goals keeps its folder only when asked: here, with every restarted stage's log.
+    (kept,) = tmp.iterdir()
+    assert f"stage logs kept in {kept}" in proc.stderr
+    assert {f"{stage}.1.log" for stage in PIPELINE} <= {path.name for path in kept.iterdir()}
 
 
 def test_the_car_brakes_to_a_stop_and_waits_while_a_stage_is_down(killed_run):
-    _, run, kills = killed_run
+    _, run, kills, _, _ = killed_run
     t, v = speeds(run)
     decel = VehicleLimits.from_scenario(PAPER).max_decel_mps2
     for kill in kills:

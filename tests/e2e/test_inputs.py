@@ -309,9 +309,9 @@ def test_a_run_far_from_the_origin_drives_as_at_home(tmp_path):
     (tmp_path / "far.json").write_text(json.dumps(doc))
     runs = {}
     for name, target in (("home", []), ("far", ["far.json"])):
-        proc, _ = _cvxnav("run", "--quiet", *target, "--out", f"{name}.json", cwd=tmp_path, tmp=tmp_path)
+        proc, _ = _cvxnav("run", "--quiet", *target, "--out", f"{name}-run.json", cwd=tmp_path, tmp=tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
-        runs[name] = RunFile.read(tmp_path / f"{name}.json")
+        runs[name] = RunFile.read(tmp_path / f"{name}-run.json")
     home, far = runs["home"], runs["far"]
     assert far.status == "reached" and far.goals_reached == 2 and far.replans == home.replans
     assert far.min_clearance == pytest.approx(home.min_clearance, abs=1e-3)

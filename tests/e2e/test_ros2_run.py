@@ -16,6 +16,7 @@ rosbags, which cvxnav encodes with), every liveliness token and every stage stat
 from __future__ import annotations
 
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -43,7 +44,7 @@ from services.ros2.interface import BRIDGE_NODE, BRIDGE_TOPICS
 from services.ros2.wire import EntityKind, parse_token
 from services.shell.ros2 import Attachment, RosNode
 from services.shell.zenoh_config import build_zenoh_config
-from stage_processes import stage_pids
+from stage_processes import alive, stage_pids
 
 ACES = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
 DEPOT = Path(__file__).resolve().parents[1] / "data" / "depot-bridge.json"
@@ -121,13 +122,6 @@ def robot_graph(tmp_path: Path) -> Iterator[tuple[str, Graph]]:
                 declaration.undeclare()
     finally:
         stop_processes([router], grace_s=5.0)
-
-
-def alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 @contextmanager
@@ -347,3 +341,31 @@ def test_a_map_servers_map_on_map_is_planned_round_with_the_robots_margin(shared
         assert plan.header.frame_id == "odom"
         assert math.dist(points[0], (start.x, start.y)) <= 0.05 and np.linalg.norm(points[-1] - goal) <= 1e-6
         assert walls.clearance(points).min() >= scenario.inflation_m
+
+
+def test_a_hung_stage_or_bridge_is_replaced_and_a_killed_run_leaves_nothing_running(tmp_path) -> None:
+    """The faults of a sim run, driving a robot: a stage and the bridge each stopped with SIGSTOP (they keep
+    their links and tokens) are killed by the watchdog and started again, the bridge's node back in the
+    robot's graph; SIGKILL of `cvxnav run --ros2` then leaves no process of it running."""
+    with robot_graph(tmp_path) as (endpoint, graph), run_ros2(None, endpoint=endpoint, graph=graph,
+                                                              cwd=tmp_path) as run:
+        graph.wait(lambda: graph.of("cmd_vel"), timeout_s=STARTUP_S, what="the bridge's first command")
+        time.sleep(1.5)  # two keep-alive periods: its watchdog is armed (a silent start is given 60 s)
+        stopped = {name: stage_pids(run.pid)[name] for name in ("planner", ROS2.name)}
+        for pid in stopped.values():
+            os.kill(pid, signal.SIGSTOP)
+        graph.wait(lambda: all(stage_pids(run.pid).get(name, pid) != pid for name, pid in stopped.items()),
+                   timeout_s=STARTUP_S, what="the stopped processes to be replaced")
+        graph.wait(lambda: graph.bridge_entities() == BRIDGE_GRAPH, timeout_s=STARTUP_S,
+                   what="the new bridge's node in the graph")
+        assert not [pid for pid in stopped.values() if alive(pid)]  # nothing stopped is left behind
+        stages = stage_pids(run.pid)
+        run.kill()  # nothing of the supervisor runs: the stages notice their parent is gone
+        run.wait()
+        deadline = time.monotonic() + 10.0
+        while any(alive(pid) for pid in stages.values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [name for name, pid in stages.items() if alive(pid)]
+    log = (tmp_path / "run.log").read_text()
+    for name, pid in stopped.items():
+        assert f"stage {name} hung (no keep-alive for" in log and f"killing pid {pid}" in log, log[-3000:]

@@ -52,7 +52,8 @@ def _corridor_plan(scenario: Scenario, **settings):
     grid = scenario.obstacles[0].grid
     cover = GridCover(grid, margin_m=MARGIN)
     found = plan_in_corridor(cover=cover, waypoints=np.vstack([scenario.start.xy, scenario.goals_array]), fixed=[],
-                             plan_fn=lambda ellipses: plan_on_model(scenario, ellipses),
+                             plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
+                                 scenario, ellipses, route_estimate_m=lengths, route_keep_to=keep_to),
                              settings=CorridorSettings(**settings))
     return found, cover
 
@@ -130,3 +131,32 @@ def test_plan_scenario_on_a_map_reports_the_stages_and_the_reason(tmp_path: Path
     assert plan.timings_ms.load == 3.0 and plan.timings_ms.corridor > 0.0
     assert plan.timings_ms.total >= 3.0 + plan.timings_ms.corridor
     json.loads(plan.model_dump_json())
+
+
+def test_the_route_search_keeps_to_the_corridor_it_is_given():
+    """In the room the corridor of the coarse search runs through the door; a segment from the start to
+    a point of the room's far corner crosses the open floor off it and is no edge of the route search,
+    while the coarse path's own segments keep to it. Told to keep to a half-plane, the exact route round
+    a disc takes the side that stays in it, as long as the unconstrained one."""
+    from services.geometry import Ellipse
+    from services.maps.corridor import _Corridor
+    from services.planner.route import tangent_route
+
+    scenario = _scenario(_room(1.2))
+    grid = scenario.obstacles[0].grid
+    waypoints = np.vstack([scenario.start.xy, scenario.goals_array])
+    coarse_grid = CoarseGrid(grid, MARGIN, 0.2)
+    coarse = coarse_grid.route(waypoints, slack=0.05)
+    corridor = _Corridor.of(coarse_grid, coarse, waypoints, keep_m=1.5)
+    assert corridor(coarse.points[:-1], coarse.points[1:]).all()
+    assert not corridor(np.array([scenario.start.xy]), np.array([[5.5, 5.5]]))[0]
+
+    disc = [Ellipse.circle(center=[5.0, 0.0], radius=1.0)]
+    box = dict(bounds_min=np.array([-5.0, -5.0]), bounds_max=np.array([15.0, 5.0]))
+    ends = dict(start=np.array([0.0, 0.0]), goals=np.array([[10.0, 0.0]]), ellipses=disc, **box)
+    free = tangent_route(**ends)
+
+    for side in (1.0, -1.0):  # keep to y ≥ 0, then to y ≤ 0: one of them is not the side the free route takes
+        kept = tangent_route(**ends, keep_to=lambda p, q, s=side: (s * p[:, 1] >= -1e-9) & (s * q[:, 1] >= -1e-9))
+        assert np.all(side * np.vstack(kept)[:, 1] >= -1e-9)
+        assert abs(polyline_length(np.vstack(kept)) - polyline_length(np.vstack(free))) < 1e-9

@@ -100,16 +100,22 @@ def test_run_rejects_infinite_clearance(tmp_path: Path) -> None:
     assert _bad_file(tmp_path, RunFile, edit) == "bad.json: min_clearance: Input should be a finite number"
 
 
-def test_a_run_2_file_says_null_for_no_obstacle_and_a_run_1_file_still_reads(tmp_path: Path) -> None:
+def test_a_run_2_file_says_null_for_no_obstacle_or_interrupted_and_a_run_1_file_still_reads(tmp_path: Path) -> None:
     empty = _run().model_copy(update={"min_clearance": None})
     empty.write(tmp_path / "empty.json")
     assert json.loads((tmp_path / "empty.json").read_text())["min_clearance"] is None
     assert RunFile.read(tmp_path / "empty.json") == empty
+    interrupted = _run().model_copy(update=dict(status="interrupted"))
+    interrupted.write(tmp_path / "interrupted.json")
+    assert RunFile.read(tmp_path / "interrupted.json") == interrupted
     data = json.loads(_run().model_dump_json())
     (tmp_path / "v1.json").write_text(json.dumps({**data, "format": "cvxnav.run/1"}))
-    assert RunFile.read(tmp_path / "v1.json").min_clearance == 0.71
+    old = RunFile.read(tmp_path / "v1.json")
+    assert (old.min_clearance, old.status) == (0.71, "reached")
     assert (_bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", min_clearance=None))
             == "bad.json: min_clearance: null is new in cvxnav.run/2")
+    assert (_bad_file(tmp_path, RunFile, lambda d: d.update(format="cvxnav.run/1", status="interrupted"))
+            == "bad.json: status: interrupted is new in cvxnav.run/2")
 
 
 def test_a_fifo_or_a_device_is_refused_unread(tmp_path: Path) -> None:

@@ -21,6 +21,12 @@ BOX = dict(bounds_min=np.array([-20.0, -20.0]), bounds_max=np.array([20.0, 20.0]
 coord = st.floats(-5, 5, allow_nan=False)
 
 
+def _random_ellipses(rng: np.random.Generator, count: int, *, extent: float, semi: tuple[float, float]) -> list[Ellipse]:
+    """`count` ellipses centred in [0, extent]², semi-axes drawn from `semi`, at random angles."""
+    return [Ellipse.from_axes(center=rng.uniform(0, extent, 2), semi_axes=np.sort(rng.uniform(*semi, 2))[::-1],
+                              angle_rad=rng.uniform(0, np.pi)) for _ in range(count)]
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     p=st.tuples(coord, coord),
@@ -41,11 +47,7 @@ def test_segment_test_agrees_with_dense_sampling(p, q, center, axes, angle):
 @pytest.mark.parametrize("run", [2, 16, 37])
 def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
     rng = np.random.default_rng(run)
-    ellipses = [
-        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.1, 1.5, 2))[::-1],
-                          angle_rad=rng.uniform(0, np.pi))
-        for _ in range(60)
-    ]
+    ellipses = _random_ellipses(rng, 60, extent=20.0, semi=(0.1, 1.5))
     stack = EllipseStack.of(ellipses)
     curve = 10.0 + np.cumsum(rng.normal(0.0, 0.05, (1000, 2)), axis=0)
     radii = rng.uniform(0.0, 0.3, len(curve))
@@ -100,11 +102,7 @@ def test_trig_roots_are_every_real_angle_of_each_polynomial():
 
 def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     rng = np.random.default_rng(3)
-    ellipses = [
-        Ellipse.from_axes(center=rng.uniform(0, 20, 2), semi_axes=np.sort(rng.uniform(0.3, 1.5, 2))[::-1],
-                          angle_rad=rng.uniform(0, np.pi))
-        for _ in range(60)
-    ]
+    ellipses = _random_ellipses(rng, 60, extent=20.0, semi=(0.3, 1.5))
     stack = EllipseStack.of(ellipses)
     p, q = rng.uniform(-1, 21, (2000, 2)), rng.uniform(-1, 21, (2000, 2))
     sure = DeepCells(stack).blocked(p, q)
@@ -360,6 +358,65 @@ def test_bounds_may_be_plain_sequences():
                   ellipses=[Ellipse.circle(center=[2.0, 3.0], radius=1.0)], max_curvature=1.0)
     as_lists = plan_path(**common, bounds_min=[-20, -20], bounds_max=(20.0, 20.0))
     assert as_lists.status == "ok" and np.array_equal(as_lists.points, plan_path(**common, **BOX).points)
+
+
+@pytest.mark.parametrize("heading_rad", [0.05, 1.3])
+def test_a_route_refined_in_windows_keeps_its_straight_stretches_and_meets_every_bound(heading_rad):
+    """A 30 m route with one sharp turn round a disc: refined in windows round the turn and the start
+    (widened until the swing off a heading 1.3 rad from the route fits), the straight stretches between
+    are the route's own points, and the path keeps the heading, the goals, the step and curvature bounds
+    and its clearance, within 0.2 % of the length the whole refinement gives."""
+    from services.planner.refine import refine
+
+    obstacles = [Ellipse.circle(center=[15.0, 0.9], radius=1.0), Ellipse.circle(center=[15.0, -3.0], radius=1.0)]
+    kappa = 1.0
+    start, goals = np.array([0.0, 0.0]), np.array([[30.0, 0.0]])
+    box = dict(bounds_min=np.array([-5.0, -10.0]), bounds_max=np.array([35.0, 10.0]))
+    legs = tangent_route(start=start, goals=goals, ellipses=obstacles, level=RefineSettings().level, **box)
+    common = dict(legs=legs, ellipses=obstacles, max_curvature=kappa, heading_rad=heading_rad, **box)
+    whole = refine(**common)
+    windowed = refine(**common, settings=RefineSettings(window_radii=2.0))
+    z = windowed.points
+    assert windowed.curvature_slack <= 1e-6 and len(intersected(z, obstacles)) == 0
+    assert np.allclose(z[0], start) and windowed.goal_indices == (len(z) - 1,) and np.allclose(z[-1], goals[-1])
+    first = z[1] - z[0]
+    assert abs(np.arctan2(first[1], first[0]) - heading_rad) < 1e-6
+    steps = np.linalg.norm(np.diff(z, axis=0), axis=1)
+    assert steps.max() <= 0.1 + 1e-6
+    # Curvature, as the smoother will see it: between points of one window (equal spacing) the discrete
+    # measure; everywhere, the angle turned per metre over any three points.
+    second = np.linalg.norm(z[2:] - 2 * z[1:-1] + z[:-2], axis=1)
+    turn = np.abs(np.angle(np.exp(1j * np.diff(np.arctan2(np.diff(z[:, 1]), np.diff(z[:, 0]))))))
+    met = RefineSettings().curvature_met_factor * kappa
+    assert np.all(turn <= met * np.minimum(steps[:-1], steps[1:]) * 1.01 + 1e-9)
+    assert np.all(second <= 2.0 * kappa * np.minimum(steps[:-1], steps[1:]) ** 2 + 1e-6)
+    # The stretch from 9 m to 12.5 m lies between the start's window and the turn's: the route's own points.
+    route, _ = resample_legs(legs, n=int(np.ceil(polyline_length(np.vstack(legs)) / RefineSettings().spacing_m)) + 1)
+    middle = route[(route[:, 0] > 9.0) & (route[:, 0] < 12.5)]
+    assert len(middle) > 30 and all(np.any(np.all(z == point, axis=1)) for point in middle)
+    assert abs(polyline_length(z) - polyline_length(whole.points)) <= 2e-3 * polyline_length(whole.points)
+
+
+def test_a_window_whose_path_the_pins_still_hold_is_widened():
+    """A hairpin round the tip of a long wall: a window two turning radii round the turn still moves the
+    path 8 cm off the route where it is pinned, so it is widened, until the path comes back onto the route
+    before its pins; the path is then the whole refinement's, to within 0.2 % of its length."""
+    from services.planner.refine import refine
+
+    obstacles = [Ellipse.from_axes(center=[15.0, -1.0], semi_axes=[0.5, 4.0]),
+                 Ellipse.circle(center=[15.0, 5.6], radius=1.0)]
+    box = dict(bounds_min=np.array([-5.0, -10.0]), bounds_max=np.array([35.0, 10.0]))
+    legs = tangent_route(start=np.array([0.0, 0.0]), goals=np.array([[17.5, 0.0]]), ellipses=obstacles,
+                         level=RefineSettings().level, **box)
+    common = dict(legs=legs, ellipses=obstacles, max_curvature=1.0, heading_rad=0.05, **box)
+    whole = refine(**common)
+    windowed = refine(**common, settings=RefineSettings(window_radii=2.0))
+    assert windowed.curvature_slack <= 1e-6 and len(intersected(windowed.points, obstacles)) == 0
+    # Two radii before the turn the path has left the route: the window reaches further back.
+    route, _ = resample_legs(legs, n=int(np.ceil(polyline_length(np.vstack(legs)) / RefineSettings().spacing_m)) + 1)
+    before = route[(route[:, 0] > 11.0) & (route[:, 0] < 12.5)]
+    assert not any(np.any(np.all(windowed.points == point, axis=1)) for point in before)
+    assert abs(polyline_length(windowed.points) - polyline_length(whole.points)) <= 2e-3 * polyline_length(whole.points)
 
 
 def test_goals_reached_at_the_start_or_with_the_goal_before_get_no_leg():

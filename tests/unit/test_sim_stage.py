@@ -10,10 +10,11 @@ from attacker import FORGED_PLAN, error_status, forge
 
 from cvxnav.bench.closed_loop import run_closed_loop
 from cvxnav.stages import load_factory
-from schemas.messages import Header, Scan, SmoothPath
+from schemas.messages import Header, Scan, SmoothPath, StageStatus
 from schemas.scenario import bundled_scenario
 from schemas.wiring import PIPELINE, SIM, STAGES, subscribers_of
 from services.contract import Refusal, StageInputError
+from sim.core import SimConfig
 from sim.stage import SimStage
 
 SCENARIO = bundled_scenario()
@@ -183,6 +184,70 @@ def test_twenty_forged_error_statuses_change_nothing(shared_dir):
     assert len(sent) == 20
     assert attacked.result().status == honest.result().status == "reached"
     assert attacked.result().trajectory == honest.result().trajectory
+
+
+def _send_until_a_scan(sim: SimStage, bus: Bus, now_s: float) -> tuple[object, float]:
+    """Tick until the sim sends a scan; the scan (undelivered) and the clock's time."""
+    while bus.queue:
+        bus.deliver(now_s=now_s)
+    while True:
+        now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        outputs = sim.tick(now_s=now_s)
+        scans = [message for topic, message in outputs if topic == "scan"]
+        if scans:
+            return scans[-1], now_s
+        bus.publish(outputs, now_s=now_s)
+        while bus.queue:
+            bus.deliver(now_s=now_s)
+
+
+def _sensing_ok(scan) -> StageStatus:
+    return StageStatus(header=Header(stamp_s=scan.header.stamp_s, seq=0), stage="sensing", state="ok", reason="",
+                       input_key="cvxnav/robot1/scan", input_stamp_s=scan.header.stamp_s, processing_ms=5.0)
+
+
+def test_a_lost_scan_is_sent_again_until_the_sensing_stage_reports_it():
+    sim = SimStage.from_scenario(SCENARIO)
+    bus, now_s = drive(sim, ticks=30)
+    scan, now_s = _send_until_a_scan(sim, bus, now_s)  # dropped on the way: nobody gets it
+    now_s = sim.next_tick_s(now_s=now_s)
+    again = [message for topic, message in sim.tick(now_s=now_s) if topic == "scan"]
+    assert [s.header.seq for s in again] == [scan.header.seq]  # the same scan, once the resend time came
+    sim.hear_status(stage="sensing", status=_sensing_ok(scan), now_s=now_s)  # this copy got through
+    now_s = sim.next_tick_s(now_s=now_s)
+    assert not [message for topic, message in sim.tick(now_s=now_s) if topic == "scan"]  # in the pipeline: no resend
+
+
+def test_an_unanswered_scan_counts_in_the_latency_until_the_next_answer():
+    clock = [0.0]
+    sim = SimStage(scenario=SCENARIO, config=SimConfig(), latency_clock=lambda: clock[0])
+    bus, now_s = drive(sim, ticks=30)
+    lost, now_s = _send_until_a_scan(sim, bus, now_s)
+    sim.hear_status(stage="sensing", status=_sensing_ok(lost), now_s=now_s)  # received, never answered
+    sent_s = now_s
+    while True:  # until the sim gives up on it and sends the next scan
+        clock[0] = now_s = max(now_s, sim.next_tick_s(now_s=now_s))
+        outputs = sim.tick(now_s=now_s)
+        if any(topic == "scan" for topic, _ in outputs):
+            break
+    assert now_s == pytest.approx(sent_s + sim.config.answer_timeout_s)
+    bus.publish(outputs, now_s=now_s)
+    while bus.queue:
+        bus.deliver(now_s=now_s)  # the next scan answered at once, on the clock of the timeout
+    assert sim.result().latency_ms.max == pytest.approx(sim.config.answer_timeout_s * 1e3)
+
+
+def test_a_run_stopped_before_its_outcome_is_interrupted_and_its_unanswered_scan_counts_until_the_stop():
+    clock = [0.0]
+    sim = SimStage(scenario=SCENARIO, config=SimConfig(), latency_clock=lambda: clock[0])
+    bus, now_s = drive(sim, ticks=30)
+    _send_until_a_scan(sim, bus, now_s)  # lost on the way: never answered
+    clock[0] += 7.5  # the stall, then the stop
+    sim.stop(now_s=now_s)
+    clock[0] += 100.0  # the result, read later, still ends at the stop
+    result = sim.result()
+    assert result.status == "interrupted" and result.format == "cvxnav.run/2"
+    assert result.latency_ms.max == pytest.approx(7.5e3)
 
 
 def test_a_run_whose_goals_are_at_the_start_is_reached_before_the_first_step():

@@ -17,6 +17,7 @@ from schemas.scenario import Scenario, bundled_scenario
 from services.convert import ellipse_to_msg
 from services.drive.guard import PathGuard
 from services.geometry import Ellipse
+from services.sensing.stage import SensingStage
 from sim.core import SimConfig, SimCore
 
 PAPER = bundled_scenario()
@@ -105,6 +106,33 @@ def test_scan_hits_taken_while_sensing_is_down_reach_it_when_it_is_back():
     assert after.points and not set(missed.points) & set(after.points)
 
 
+def test_carried_hits_keep_every_scan_one_the_sensing_stage_accepts():
+    """A wall ahead fills most rays; hits missed from poses along 4 m of road do not all fit in one scan
+    (one hit per ray at most) nor all lie within the sensor's range of it, as the sensing stage checks."""
+    doc = json.loads(open_field().model_dump_json())
+    doc["obstacles"] = [{"type": "polygon", "vertices": [[6.0, -4.0], [6.5, -4.0], [6.5, 4.0], [6.0, 4.0]]}]
+    scenario = Scenario.model_validate(doc)
+    core, sensing = SimCore(scenario=scenario), SensingStage.from_scenario(scenario)
+    core.stage_lost("sensing")
+    for x_m in np.arange(0.0, 4.01, 0.25):  # the car moved on while the stage was down
+        core.state = replace(core.state, x_m=float(x_m))
+        core.sense()
+    missed = dict(core.unheard)
+    assert len(missed) > scenario.sensor.rays
+    core.stage_back("sensing")
+    core.state = replace(core.state, x_m=1.5)  # far from some of them now
+    for _ in range(10):
+        _, scan = core.sense()
+        assert len(scan.points) <= scenario.sensor.rays
+        sensing.process(topic="scan", message=scan, now_s=0.0)  # a scan it accepts: no StageInputError
+        core.accept(SmoothPath(header=Header(stamp_s=core.t_s, seq=0), scan_seq=scan.header.seq, status="no_path",
+                               goal_index=0, points=[], max_curvature=0.0, min_level=0.0))
+        drive(core, core.steps_per_scan)
+    in_range = {cell for cell, (x, y) in missed.items() if math.hypot(x - 1.5, y) <= scenario.sensor.range}
+    assert in_range and not in_range & set(core.unheard)  # every one in range got through
+    assert set(core.unheard) == set(missed) - in_range  # the others wait for the car to come back
+
+
 def test_a_path_through_a_known_ellipse_is_not_driven_and_says_why():
     core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
     core.sense()
@@ -119,6 +147,24 @@ def test_a_path_through_a_known_ellipse_is_not_driven_and_says_why():
     core.sense()
     assert core.accept(path(core, around, plan_id=2)) is None
     assert drive(core, 40)[-1] > 0.5
+
+
+def test_a_late_answer_it_will_not_drive_brakes_the_car_but_starts_no_back_out():
+    """A link cut for longer than a path may be old: the first answer after it is for a scan long gone."""
+    core = SimCore(scenario=open_field())
+    core.sense()
+    core.accept(path(core, straight()))
+    drive(core, 20)  # under way: tracks to back out along
+    core.sense()
+    late = path(core, straight(core.state.x_m), plan_id=2)  # its answer, held up by the cut
+    assert drive(core, 60)[-1] == 0.0  # no fresh path: the car braked to rest
+    core.know(grown(center=(core.state.x_m + 4.0, 0.0), radius=1.5, scan_seq=core.scan_seq))
+    assert core.accept(late) is not None  # crosses newer obstacles: not driven ...
+    assert max(drive(core, 40)) == 0.0 and not core.backing_out  # ... and no reason to back out
+    core.sense()
+    assert core.accept(path(core, straight(core.state.x_m), plan_id=3)) is not None  # the newest scan's verdict
+    drive(core, 1)
+    assert core.backing_out
 
 
 def test_newer_obstacles_across_the_path_being_driven_stop_the_car():

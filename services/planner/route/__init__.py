@@ -43,6 +43,6 @@ leg found is within it — then it is the exact shortest. Tangents, cuts and seg
 widens.
 """
 
-from services.planner.route.graph import Route, shortest_route, tangent_route
+from services.planner.route.graph import KeepTo, Route, shortest_route, tangent_route
 
-__all__ = ["Route", "shortest_route", "tangent_route"]
+__all__ = ["KeepTo", "Route", "shortest_route", "tangent_route"]

@@ -8,6 +8,7 @@ then it is the exact shortest. Tangents, cuts and segment tests are kept as it w
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,11 @@ _BLOCK_TOL = 1e-9  # a segment touching a third ellipse (level 1 up to rounding)
 # tests tens of segments, a dense one thousands: docs/benchmarks.md, measurement history).
 _DEEP_MIN_SEGMENTS = 256
 _BOUND_FACTORS = (1.03, 1.1, 1.2, 1.35, 1.6, 2.2, np.inf)  # informed-ellipse bounds tried, × the straight distance
+# (or × a longer estimate of the leg: `shortest_route`)
+
+
+# Where a route may go, as a test of segments: starts (n, 2), ends (n, 2) → whether each stays there.
+KeepTo = Callable[[FloatArray, FloatArray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -49,9 +55,11 @@ class _TangentGraph:
     overlapping ellipses, about half of them lie wholly inside the others).
     """
 
-    def __init__(self, *, frames: Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max) -> None:
+    def __init__(self, *, frames: Frames, stack: EllipseStack, terminals: FloatArray, bounds_min, bounds_max,
+                 keep_to: KeepTo | None = None) -> None:
         self.frames, self.stack, self.terminals = frames, stack, terminals
         self.bounds_min, self.bounds_max = bounds_min, bounds_max
+        self.keep_to = keep_to
         m, t = len(frames.A), len(terminals)
         self.covered = np.zeros(m, dtype=bool)  # ellipses whose cuts are known
         self.cuts = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros((0, 5)))
@@ -141,6 +149,9 @@ class _TangentGraph:
             hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[k][rows]) & (cols != seg.owner_q[k][rows])
             blocked = np.zeros(len(k), dtype=bool)
             blocked[rows[hit]] = True
+            if self.keep_to is not None:  # a clear segment that leaves where the route may go is no edge
+                clear = np.flatnonzero(~blocked)
+                blocked[clear[~self.keep_to(seg.p[k[clear]], seg.q[k[clear]])]] = True
             self.status[pick[k]] = np.where(blocked, 2, 1)
         keep = self.status[pick] == 1
         seg, length = seg.take(keep), length[keep]
@@ -231,11 +242,20 @@ def shortest_route(
     bounds_min: FloatArray,
     bounds_max: FloatArray,
     level: float = 1.01,
+    estimate_m: Sequence[float] | None = None,
+    keep_to: KeepTo | None = None,
 ) -> Route | None:
     """The exact shortest route start → goal₁ → … outside every ellipse scaled to `level`; None if none.
 
     An ellipse that would contain a terminal at `level` is scaled only as far as leaves the terminal
     outside (never below the ellipse itself), so a robot just inside a margin can still leave.
+    `estimate_m`: each leg's length as a coarser search found it (the corridor planner's); the informed
+    bounds are then factors of it where it is longer than the straight distance (a winding leg would
+    otherwise build and search the graph once per factor before its bound reaches the route). It is
+    only where the search starts: a bound is widened until the leg found is within it, either way.
+    `keep_to`: where the route may go (a corridor): a tangent segment it rejects is no edge of the
+    graph, so the route is the shortest among those that keep to it (arcs, which follow the ellipses,
+    are not tested).
     """
     start = np.asarray(start, dtype=float)
     goals = np.atleast_2d(np.asarray(goals, dtype=float))
@@ -249,14 +269,18 @@ def shortest_route(
         scale = np.zeros(0)
     frames = Frames.of(stack, scale)
     scaled = EllipseStack(A=frames.A, b=frames.b)
-    straight = np.linalg.norm(np.diff(terminals, axis=0), axis=1)
+    # Each leg's bounds are factors of its straight distance, or of its estimate where that is longer.
+    base = np.linalg.norm(np.diff(terminals, axis=0), axis=1)
+    if estimate_m is not None:
+        base = np.maximum(base, np.asarray(estimate_m, dtype=float))
     legs: list[FloatArray | None] = [None] * len(goals)
     lengths = [np.inf] * len(goals)
     # Each leg's bound: the next factor, or the length of a route found beyond the last bound (any
     # route is an upper bound, and a tighter one than the next factor).
     step = np.zeros(len(goals), dtype=int)
-    bound = _BOUND_FACTORS[0] * straight + 1e-9
-    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min, bounds_max=bounds_max)
+    bound = _BOUND_FACTORS[0] * base + 1e-9
+    tangents = _TangentGraph(frames=frames, stack=scaled, terminals=terminals, bounds_min=bounds_min,
+                             bounds_max=bounds_max, keep_to=keep_to)
     while True:
         todo = [k for k in range(len(goals)) if legs[k] is None]
         if not todo:
@@ -279,7 +303,7 @@ def shortest_route(
                 bound[leg] = found * (1.0 + 1e-9)
             else:
                 step[leg] += 1
-                bound[leg] = _BOUND_FACTORS[step[leg]] * straight[leg] + 1e-9
+                bound[leg] = _BOUND_FACTORS[step[leg]] * base[leg] + 1e-9
 
 
 def tangent_route(
@@ -290,12 +314,16 @@ def tangent_route(
     bounds_min: FloatArray,
     bounds_max: FloatArray,
     level: float = 1.01,
+    estimate_m: Sequence[float] | None = None,
+    keep_to: KeepTo | None = None,
 ) -> list[FloatArray] | None:
     """Shortest polylines start → goal₁ → … (one per leg) outside every ellipse; None if there is none.
 
     The polyline stays at level ≥ `level` (arcs circumscribed, tangents exact), inside the bounds.
+    `estimate_m`, `keep_to`: see `shortest_route`.
     """
     route = shortest_route(
-        start=start, goals=goals, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max, level=level
+        start=start, goals=goals, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max, level=level,
+        estimate_m=estimate_m, keep_to=keep_to,
     )
     return None if route is None else route.legs
