@@ -343,6 +343,7 @@ def test_a_map_servers_map_on_map_is_planned_round_with_the_robots_margin(shared
         assert walls.clearance(points).min() >= scenario.inflation_m
 
 
+@pytest.mark.slow
 def test_a_hung_stage_or_bridge_is_replaced_and_a_killed_run_leaves_nothing_running(tmp_path) -> None:
     """The faults of a sim run, driving a robot: a stage and the bridge each stopped with SIGSTOP (they keep
     their links and tokens) are killed by the watchdog and started again, the bridge's node back in the
