@@ -10,9 +10,14 @@ Ellipsoids are in the paper's form {z : ||A z + b||_2 <= 1} with A symmetric pos
 
 from __future__ import annotations
 
+import base64
+import binascii
+import zlib
 from typing import Annotated, ClassVar, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from schemas.occupancy import FREE, MAX_CELLS, OCCUPIED, UNKNOWN
 
 # A world-frame point [x, y] in metres; JSON carries it as a two-element array.
 Point = tuple[float, float]
@@ -20,6 +25,7 @@ NonNegativeInt = Annotated[int, Field(ge=0)]
 Status = Literal["ok", "no_path"]
 
 _SYMMETRY_RTOL = 1e-9
+MAP_CELL_STATES = bytes((FREE, OCCUPIED, UNKNOWN))  # a Map's cell bytes
 
 
 class _Frozen(BaseModel):
@@ -226,6 +232,58 @@ class World(Message):
     circles: list[CircleMsg]
 
 
+class Map(Message):
+    """An occupancy grid to plan on (a robot's /map, from the ROS 2 bridge), in the pipeline's frame.
+
+    ``cells`` holds ``height`` rows of ``width`` cells, row 0 at the origin's side and cell (0, 0) first,
+    as nav_msgs/OccupancyGrid orders them; each cell one byte, its state as `schemas.occupancy` has it
+    (0 free, 1 occupied, 2 unknown), the bytes zlib-compressed and base64-encoded: a building's map is tens of
+    kilobytes (ACES, 1.4 M cells: 68 kB), within the pipeline's payload cap. ``origin`` is the pose of
+    cell (0, 0)'s outer corner. The cells are checked on decoding: base64, a zlib stream that inflates
+    to exactly width × height bytes (never more is inflated), every byte a state.
+    """
+
+    SCHEMA: ClassVar[str] = "cvxnav.Map"
+    VERSION: ClassVar[int] = 1
+
+    header: Header
+    width: int = Field(ge=1)
+    height: int = Field(ge=1)
+    resolution_m: float = Field(gt=0.0)
+    origin: Pose2D
+    cells: str
+
+    @model_validator(mode="after")
+    def _cells_decode(self) -> Map:
+        self.cell_bytes()
+        return self
+
+    def cell_bytes(self) -> bytes:
+        """The cells, row-major: one state byte each; ValueError (one line) when they are not that."""
+        count = self.width * self.height
+        if count > MAX_CELLS:
+            raise ValueError(f"{self.width} x {self.height} cells is more than the {MAX_CELLS} a map may have")
+        try:
+            packed = base64.b64decode(self.cells, validate=True)
+            inflate = zlib.decompressobj()
+            data = inflate.decompress(packed, count + 1)  # one more than needed tells a longer stream
+        except (binascii.Error, zlib.error) as error:
+            raise ValueError(f"cells: not base64 of a zlib stream ({error})") from None
+        if len(data) != count:
+            got = f"more than {count}" if len(data) > count else str(len(data))
+            raise ValueError(f"cells: {got} bytes for a {self.width} x {self.height} grid (needs {count})")
+        if not inflate.eof or inflate.unused_data:
+            raise ValueError("cells: not one whole zlib stream (truncated, or data after its end)")
+        if data.translate(None, MAP_CELL_STATES):
+            raise ValueError("cells: a byte that is not 0 (free), 1 (occupied) or 2 (unknown)")
+        return data
+
+    @classmethod
+    def pack_cells(cls, data: bytes) -> str:
+        """State bytes (row-major) as ``cells`` carries them."""
+        return base64.b64encode(zlib.compress(data, 6)).decode("ascii")
+
+
 MESSAGE_MODELS: tuple[type[Message], ...] = (
     Scan,
     Clusters,
@@ -236,6 +294,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     Goals,
     StageStatus,
     World,
+    Map,
 )
 
 

@@ -4,7 +4,7 @@ Keys are relative to a prefix (default ``cvxnav/robot1``, CONTRACTS.md §5) and 
 by the helpers below. `cvxnav run`, `cvxnav service`, compose.yaml, the monitor, `cvxnav status` and
 the closed-loop bench read this table; no core names a key of its own.
 
-    sim        --scan, state-->   sensing (scan), planner (state)
+    sim        --scan, state-->   sensing (scan), planner (state), ellipsoids (state: where the robot is)
     sensing    --clusters-->      ellipsoids
     ellipsoids --ellipsoids-->    planner
     planner    --raw_path-->      smoother
@@ -14,7 +14,9 @@ the closed-loop bench read this table; no core names a key of its own.
 
 For a ROS 2 robot (``cvxnav run --ros2``) the bridge ``ros2`` takes the sim's place: it publishes
 scan and state from the robot's /scan and /odom, reads smooth_path and ellipsoids as the sim does, and
-publishes ``goals`` (read by the planner and the smoother) when the robot is given a /goal_pose. It is
+publishes ``goals`` (read by the planner and the smoother) when the robot is given a /goal_pose, and
+``map`` (read by the ellipsoid stage, which adds the map's walls near the robot to the sensed
+obstacles) when it is given a /map. It is
 also a ROS 2 node (``StageSpec.ros2``): its topics are rmw_zenoh's keys outside the prefix
 (``services.ros2.interface``), declared by the shell (``services.shell.ros2``).
 
@@ -36,7 +38,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal, Mapping
 
-from schemas.messages import Clusters, Ellipsoids, Goals, Message, RawPath, RobotState, Scan, SmoothPath, World
+from schemas.messages import Clusters, Ellipsoids, Goals, Map, Message, RawPath, RobotState, Scan, SmoothPath, World
 
 DEFAULT_ROBOT_ID = "robot1"
 # A robot id is a name: one key chunk, never a pattern (`*` in a key would reach every robot's keys).
@@ -96,6 +98,7 @@ TOPICS: Mapping[str, Topic] = MappingProxyType(
             Topic(name="smooth_path", model=SmoothPath),
             Topic(name="world", model=World, latched=True),
             Topic(name="goals", model=Goals, latched=True),
+            Topic(name="map", model=Map, latched=True),
         )
     }
 )
@@ -104,7 +107,7 @@ _PIPELINE = (
     StageSpec(name="sensing", factory="services.sensing.stage:SensingStage.from_scenario",
               subscribes=("scan",), publishes=("clusters",)),
     StageSpec(name="ellipsoids", factory="services.ellipsoids.stage:EllipsoidsStage.from_scenario",
-              subscribes=("clusters",), publishes=("ellipsoids",)),
+              subscribes=("map", "state", "clusters"), publishes=("ellipsoids",)),
     StageSpec(name="planner", factory="services.planner.stage:PlannerStage.from_scenario",
               subscribes=("goals", "ellipsoids", "state"), publishes=("raw_path",)),
     StageSpec(name="smoother", factory="services.smoother.stage:SmootherStage.from_scenario",
@@ -115,9 +118,9 @@ PIPELINE: tuple[str, ...] = tuple(spec.name for spec in _PIPELINE)  # started fi
 SIM = StageSpec(name="sim", factory="sim.stage:SimStage.from_scenario", subscribes=("smooth_path", "ellipsoids"),
                 publishes=("scan", "state", "world"), role="source", watches=PIPELINE, hears_statuses=True)
 
-# The sim's place for a ROS 2 robot (`cvxnav run --ros2`): the robot's topics in and out, and its goals.
+# The sim's place for a ROS 2 robot (`cvxnav run --ros2`): the robot's topics in and out, its goals and map.
 ROS2 = StageSpec(name="ros2", factory="services.ros2.stage:BridgeStage.from_scenario",
-                 subscribes=("smooth_path", "ellipsoids"), publishes=("scan", "state", "goals"), role="source",
+                 subscribes=("smooth_path", "ellipsoids"), publishes=("scan", "state", "goals", "map"), role="source",
                  watches=PIPELINE, ros2=True)
 
 # The observer: subscribes to every topic (and every status), publishes nothing.

@@ -18,6 +18,7 @@ from schemas.messages import (
     Ellipsoids,
     Goals,
     Header,
+    Map,
     Pose2D,
     RawPath,
     RobotState,
@@ -26,6 +27,7 @@ from schemas.messages import (
     StageStatus,
     World,
 )
+from schemas.occupancy import OccupancyGrid
 from schemas.scenario import Scenario
 from services.geometry import Ellipse, FloatArray
 
@@ -54,6 +56,22 @@ def ellipse_to_model(ellipse: Ellipse) -> EllipseModel:
 
 def ellipse_from_model(model: EllipseModel) -> Ellipse:
     return Ellipse(A=model.A, b=model.b)
+
+
+def grid_to_msg(grid: OccupancyGrid, *, header: Header) -> Map:
+    """An occupancy grid as the pipeline's `Map` message (its cells' states, row 0 at the origin's side)."""
+    rows, cols = grid.shape
+    return Map(header=header, width=cols, height=rows, resolution_m=grid.resolution_m,
+               origin=Pose2D(x_m=grid.origin_x_m, y_m=grid.origin_y_m, theta_rad=grid.origin_yaw_rad),
+               cells=Map.pack_cells(grid.state.tobytes()))
+
+
+def grid_from_msg(message: Map) -> OccupancyGrid:
+    """The occupancy grid a `Map` message carries."""
+    state = np.frombuffer(message.cell_bytes(), dtype=np.uint8).reshape(message.height, message.width)
+    o = message.origin
+    return OccupancyGrid(state=state, resolution_m=message.resolution_m, origin_x_m=o.x_m, origin_y_m=o.y_m,
+                         origin_yaw_rad=o.theta_rad, source="<Map>")
 
 
 def answer_header(*, scan_header: Header, seq: int) -> Header:
@@ -94,6 +112,7 @@ _MOVERS: dict[type, Callable[[Any, FloatArray], Any]] = {
     RobotState: lambda m, d: m.model_copy(update={"pose": _pose(m.pose, d)}),
     Goals: lambda m, d: m.model_copy(update={"goals": _points(m.goals, d)}),
     StageStatus: lambda m, d: m,
+    Map: lambda m, d: m.model_copy(update={"origin": _pose(m.origin, d)}),
     World: lambda m, d: m.model_copy(update={
         "bounds_min": _points([m.bounds_min], d)[0], "bounds_max": _points([m.bounds_max], d)[0],
         "start": _pose(m.start, d), "goals": _points(m.goals, d),

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
+import yaml
+from PIL import Image
 
 from services.ros2 import typesupport
 
@@ -57,4 +60,23 @@ def occupancy_grid(data, *, width: int, height: int, resolution_m: float, origin
                   info=ros("nav_msgs/msg/MapMetaData", map_load_time=stamp(0.0), resolution=resolution_m, width=width,
                            height=height, origin=pose(*origin, 0.0)),
                   data=np.asarray(data, dtype=np.int8))
+    return typesupport.encode(message, "nav_msgs/msg/OccupancyGrid")
+
+
+def map_server_grid(yaml_path: Path, *, frame: str = "odom", t_s: float = 0.0) -> bytes:
+    """The nav_msgs/OccupancyGrid a map server publishes for a trinary map_server map, read here from its
+    YAML and image with Pillow (not with `load_map`): the image's top row last, p = (255 − shade) / 255,
+    100 above occupied_thresh, map_saver's unknown shade 205 and anything between the thresholds −1, 0 below
+    free_thresh."""
+    doc = yaml.safe_load(yaml_path.read_text())
+    assert doc["mode"] == "trinary" and doc["negate"] == 0
+    shade = np.asarray(Image.open(yaml_path.parent / doc["image"]).convert("L"), dtype=float)[::-1]
+    p = (255.0 - shade) / 255.0
+    data = np.where(p > doc["occupied_thresh"], 100, np.where((p < doc["free_thresh"]) & (shade != 205), 0, -1))
+    height, width = shade.shape
+    x, y, yaw = doc["origin"]
+    message = ros("nav_msgs/msg/OccupancyGrid", header=header(t_s, frame),
+                  info=ros("nav_msgs/msg/MapMetaData", map_load_time=stamp(t_s), resolution=doc["resolution"],
+                           width=width, height=height, origin=pose(x, y, yaw)),
+                  data=data.astype(np.int8).reshape(-1))
     return typesupport.encode(message, "nav_msgs/msg/OccupancyGrid")

@@ -1,6 +1,7 @@
 """The monitor stage: every key under the prefix, logged to rerun on a tree that mirrors the pipeline.
 
     world/obstacles, world/bounds, goals      the true map (from the sim's World message), static
+    world/map                                 a known map's occupied cells (a robot's /map), static
     sensing/scan, sensing/clusters            what the sensor saw and how it was grouped
     ellipsoids/grown                          the inflated ellipses the planner avoids
     planner/raw_path, smoother/path           the plan before and after smoothing
@@ -35,9 +36,10 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.messages import Clusters, Ellipsoids, Goals, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
+from schemas.messages import Clusters, Ellipsoids, Goals, Map, RawPath, RobotState, Scan, SmoothPath, StageStatus, World
 from schemas.scenario import Scenario
 from services.contract import Outputs
+from services.convert import grid_from_msg
 from services.monitor.shapes import circle_outline, closed, ellipse_outline, footprint_outline
 
 logger = logging.getLogger(__name__)
@@ -172,6 +174,11 @@ class RerunLogger:
         self._rec.log("goals", self._rr.Points2D(goals.goals, colors=[0, 160, 0],
                                                  labels=[f"goal {i + 1}" for i in range(len(goals.goals))]),
                       static=True)
+
+    def _map(self, known: Map) -> None:
+        """A known map (a robot's /map): its occupied cells, as few rectangles."""
+        outlines = [closed(box) for box in grid_from_msg(known).rectangles()]
+        self._rec.log("world/map", self._rr.LineStrips2D(outlines, colors=[90, 90, 90], radii=0.02), static=True)
 
     def _scan(self, scan: Scan) -> None:
         self._scan_seen_s[scan.header.seq] = time.monotonic()

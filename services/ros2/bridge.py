@@ -28,6 +28,10 @@ Out: the pipeline's ``scan`` and ``state``, and ``/plan`` (nav_msgs/Path) and ``
 Rejected, with a one-line reason in `BridgeOutput.error` (the bridge brakes and carries on): a key
 whose type or hash is not the topic's, malformed CDR, a scan with more rays than the scenario's sensor,
 non-finite poses or twists, an odometry frame that changes mid-run, a goal or map in another frame.
+
+A /map (OccupancyGrid) becomes the pipeline's ``map`` (`schemas.messages.Map`, for the ellipsoid stage):
+cells free, occupied or unknown by map_server's default thresholds (`OccupancyGrid.from_values`), sent
+once the odometry's frame is known and equal to the map's.
 """
 
 from __future__ import annotations
@@ -38,13 +42,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.messages import Ellipsoids, Header, Point, Pose2D, RobotState, Scan, SmoothPath
+from schemas.messages import Ellipsoids, Header, Map, Point, Pose2D, RobotState, Scan, SmoothPath
+from schemas.occupancy import MapError, OccupancyGrid
 from schemas.scenario import Scenario
 from services.contract import StageInputError
+from services.convert import grid_to_msg
 from services.drive.controller import GoalTracker, PurePursuit
 from services.drive.guard import PathGuard, ahead
 from services.drive.vehicle import VehicleLimits, VehicleState
-from services.limits import Reach, check_count
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES, Reach, check_count
 from services.ros2 import typesupport
 from services.ros2.interface import BRIDGE_TOPICS, MAX_MAP_CELLS
 from services.ros2.wire import node_namespace, resolve_topic, topic_key
@@ -90,30 +96,15 @@ class BridgeConfig:
                          msgtype=spec.msgtype, type_hash=spec.type_hash)
 
 
-@dataclass(frozen=True, eq=False)
-class KnownMap:
-    """A received /map, decoded: the seam to the map model (issue 28 builds it on branch `maps`).
-
-    ``occupancy`` is the grid as OccupancyGrid has it: (height, width) int8, row 0 at the origin's y,
-    -1 unknown and 0..100 the probability of occupancy in percent.
-    """
-
-    occupancy: np.ndarray
-    resolution_m: float
-    origin: Pose2D  # the pose of cell (0, 0)'s corner in the map frame
-    frame_id: str
-
-
 @dataclass
 class BridgeOutput:
     """What one input produced: pipeline messages by topic, ROS messages by bridge topic, and a verdict."""
 
-    pipeline: list[tuple[str, Scan | RobotState]] = field(default_factory=list)
+    pipeline: list[tuple[str, Scan | RobotState | Map]] = field(default_factory=list)
     ros: list[tuple[str, object]] = field(default_factory=list)  # (BRIDGE_TOPICS name, rosbags message)
     error: str | None = None  # why the input was rejected (one line); the robot brakes
     refused: str | None = None  # the input topic the error is about
     goals: tuple[Point, ...] | None = None  # new goals from /goal_pose, for the planner
-    known_map: KnownMap | None = None  # a new /map
 
 
 @dataclass(frozen=True)
@@ -198,7 +189,9 @@ class Ros2Bridge:
         self.last_command = self._twist(0.0, 0.0)  # the newest /cmd_vel, and when it went out
         self.commanded_s = -math.inf
         self.latencies_ms: list[float] = []  # scan received → its smooth path received
-        self.known_map: KnownMap | None = None
+        self.map_frame_id: str | None = None  # the frame of the newest /map
+        self.map: Map | None = None  # the newest /map, for the pipeline
+        self.map_sent = False  # ... gone out (it waits for the odometry whose frame it must share)
 
     # ----------------------------------------------------------------------- ROS inputs
 
@@ -224,8 +217,8 @@ class Ros2Bridge:
         if self.frame_id is None:
             if not frame:
                 raise StageInputError("header.frame_id is empty: the plans need a frame")
-            if self.known_map is not None and self.known_map.frame_id != frame:
-                raise StageInputError(f"frame {frame!r} is not the map's {self.known_map.frame_id!r}")
+            if self.map_frame_id is not None and self.map_frame_id != frame:
+                raise StageInputError(f"frame {frame!r} is not the map's {self.map_frame_id!r}")
             self.frame_id = frame
         elif frame != self.frame_id:
             raise StageInputError(f"header.frame_id changed from {self.frame_id!r} to {frame!r} mid-run; the "
@@ -245,7 +238,7 @@ class Ros2Bridge:
         self.odom = _Odometry(pose=pose, speed_mps=float(speed), stamp_s=stamp_s, received_s=received_s)
         self.odometry.append(self.odom)
         self.goals.update(x_m=pose.x_m, y_m=pose.y_m)
-        out = BridgeOutput(pipeline=self._planning(self._state()),
+        out = BridgeOutput(pipeline=self._map_out() + self._planning(self._state()),
                            ros=self._send(self._command(dt_s=min(max(dt_s, 0.0), 1.0), now_s=received_s),
                                           now_s=received_s))
         placed = self._place_scans(now_s=received_s)  # scans that waited for this odometry
@@ -344,6 +337,8 @@ class Ros2Bridge:
                                             from_next_scan=True), goals=tuple(self.goals.goals))
 
     def _on_map(self, message: object, *, received_s: float) -> BridgeOutput:
+        """A /map becomes the pipeline's `Map` (its cells free, occupied or unknown as map_server's thresholds
+        read them), sent once the odometry has shown that the map is in its frame."""
         frame = message.header.frame_id
         if self.frame_id is not None and frame != self.frame_id:
             raise StageInputError(f"frame {frame!r} is not the odometry's {self.frame_id!r}")
@@ -356,12 +351,27 @@ class Ros2Bridge:
         values = (info.resolution, o.position.x, o.position.y, o.orientation.z, o.orientation.w)
         if not all(math.isfinite(v) for v in values) or not info.resolution > 0.0:
             raise StageInputError(f"resolution {info.resolution} and origin must be finite, resolution positive")
-        self.known_map = KnownMap(
-            occupancy=np.asarray(message.data, dtype=np.int8).reshape(height, width),
-            resolution_m=float(info.resolution),
-            origin=Pose2D(x_m=float(o.position.x), y_m=float(o.position.y), theta_rad=yaw_of(o.orientation)),
-            frame_id=frame)
-        return BridgeOutput(known_map=self.known_map)
+        try:
+            grid = OccupancyGrid.from_values(message.data, width=width, height=height,
+                                             resolution_m=float(info.resolution),
+                                             origin=(float(o.position.x), float(o.position.y), yaw_of(o.orientation)))
+        except MapError as error:
+            raise StageInputError(str(error)) from None
+        stamp_s = max(ros_time_s(message.header.stamp), 0.0)
+        pipeline_map = grid_to_msg(grid, header=Header(stamp_s=stamp_s, seq=0))
+        size = len(pipeline_map.to_json_bytes())
+        if size > DEFAULT_MAX_PAYLOAD_BYTES:
+            raise StageInputError(f"the grid's cells compress to {size} bytes, more than the pipeline's "
+                                  f"{DEFAULT_MAX_PAYLOAD_BYTES} a message may have")
+        self.map_frame_id, self.map, self.map_sent = frame, pipeline_map, False
+        return BridgeOutput(pipeline=self._map_out())
+
+    def _map_out(self) -> list[tuple[str, Map]]:
+        """The newest /map for the pipeline, once, as soon as the odometry's frame is known (it is the map's)."""
+        if self.map is None or self.map_sent or self.frame_id is None:
+            return []
+        self.map_sent = True
+        return [("map", self.map)]
 
     # ----------------------------------------------------------------------- pipeline inputs
 

@@ -3,7 +3,8 @@
 `Ros2Bridge` does the work; this is what the one shell (``services.shell``) asks of a core: the robot's
 topics come in as raw CDR (``Bridging.receive``), the pipeline's paths and ellipses as messages
 (``process``), the pipeline stages' liveliness as ``stage_alive`` and a timer as ``tick``. Out go the
-pipeline's scan and state, the goals of a /goal_pose, and /plan and /cmd_vel as CDR (``Raw``). A
+pipeline's scan and state, the goals of a /goal_pose, the map of a /map, and /plan and /cmd_vel as CDR
+(``Raw``). A
 rejected input is a ``Refusal`` on the input's port, so the shell reports it on the bridge's status
 key, next to the zero /cmd_vel the robot brakes on; nothing else the bridge holds is lost.
 
@@ -14,6 +15,7 @@ key, next to the zero /cmd_vel the robot brakes on; nothing else the bridge hold
   and is the odometry watchdog: with no odometry for `BridgeConfig.odom_timeout_s`, a zero /cmd_vel on
   every tick.
 - On stop, a last zero /cmd_vel: the robot is not left driving on the bridge's last command.
+- A stage that reads the map gets it again whenever its token (re)appears.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pydantic import BaseModel
 
 from schemas.messages import Ellipsoids, Goals, Header, SmoothPath
 from schemas.scenario import Scenario
-from schemas.wiring import ROS2
+from schemas.wiring import ROS2, subscribers_of
 from services.contract import Outputs, Raw, Refusal, StageInputError
 from services.ros2 import typesupport
 from services.ros2.bridge import BridgeConfig, BridgeOutput, Ros2Bridge
@@ -77,9 +79,14 @@ class BridgeStage:
 
     def stage_alive(self, *, stage: str, alive: bool, now_s: float) -> Outputs:
         if alive:
-            if stage in self.bridge.missing:
+            back = stage in self.bridge.missing
+            if back:
                 logger.info("stage %s is up", stage)
             self.bridge.stage_back(stage)
+            # The map again for a stage that reads it: its query of the latched key, one second at start,
+            # may have gone unanswered on a busy machine (a map it has is ignored).
+            if back and stage in subscribers_of("map") and self.bridge.map_sent:
+                return [("map", self.bridge.map)]
             return []
         logger.warning("stage %s is down: the robot brakes until it is back and a fresh plan arrives", stage)
         return self._outputs(self.bridge.stage_lost(stage, now_s=now_s))

@@ -36,6 +36,7 @@ from schemas.messages import (
     Ellipsoids,
     Goals,
     Header,
+    Map,
     Message,
     Pose2D,
     RawPath,
@@ -125,6 +126,9 @@ ABSURD: dict[str, list[Message]] = {
         Goals(header=header(), goals=[(1.0, 1.0), (OFF_MAP, 0.0)]),
         Goals(header=header(), goals=[(1.0, 1.0)] * (MAX_GOALS + 1)),
     ],
+    "map": [
+        Map(header=header(), width=2, height=2, resolution_m=0.5, origin=pose(OFF_MAP), cells=Map.pack_cells(bytes(4))),
+    ],
 }
 assert set(ABSURD) == set(TOPICS)
 
@@ -191,8 +195,11 @@ def payloads(draw, topic: str) -> Payload:
     return kind, (b"[" + b"[1.0,2.0]," * (size // 10) + b"[1.0,2.0]]")[:max(size, 1)], encoding
 
 
-def readers(topic: str) -> tuple[str, ...]:
-    """The stages that must report a rejected payload on `topic` (the sim reads smooth_path itself)."""
+def readers(topic: str, kind: str = "", data: bytes = b"") -> tuple[str, ...]:
+    """The stages that must report a rejected payload on `topic` (the sim reads smooth_path itself). A
+    state absurd only in its goal counts is the planner's to judge: the ellipsoid stage reads only the pose."""
+    if topic == "state" and kind == "absurd" and RobotState.model_validate_json(data).pose == pose():
+        return ("planner",)
     return ("sim",) if topic == "smooth_path" else subscribers_of(topic)
 
 
@@ -219,7 +226,7 @@ class Fuzzer:
     def send(self, topic: str, payload: Payload) -> None:
         kind, data, encoding = payload
         target = key(PREFIX, topic)
-        waiting = set(readers(topic))
+        waiting = set(readers(topic, kind, data))
         self._fuzz_rejections()  # forget stale ones
         for _ in range(ATTEMPTS):
             self.session.put(target, data, encoding=zenoh.Encoding(encoding) if encoding else None)

@@ -9,6 +9,8 @@ rosbags, which cvxnav encodes with), every liveliness token and every stage stat
   scenario's goal: the plans must be the robot's (its frame, from its pose, to its goal), keep its
   margin from every real hit it had had for half a second, and the commands must flow.
 - A synthetic robot's node publishes the inputs the issue names as breaking ones into a live run.
+- A map server's map (Nav2's depot) on /map, published before the run starts, and a laser that sees
+  nothing: every plan goes round the map's walls, which the straight way runs into, with the margin.
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ import zenoh
 
 from cvxnav.supervisor import free_ports, stop_processes
 from ros2_bag import aces_bag_dir, independent_decoder
-from ros2_messages import laser_scan, odometry
+from ros2_messages import laser_scan, map_server_grid, odometry
 from schemas.messages import StageStatus, decode
+from schemas.occupancy import load_map
 from schemas.scenario import bundled_scenario, load_scenario
 from schemas.wiring import PIPELINE, ROS2, default_prefix, status_key
 from services.ros2.bridge import yaw_of
@@ -44,6 +47,7 @@ from services.shell.zenoh_config import build_zenoh_config
 from stage_processes import alive, stage_pids
 
 ACES = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
+DEPOT = Path(__file__).resolve().parents[1] / "data" / "depot-bridge.json"
 PREFIX = default_prefix()
 STARTUP_S = 180.0  # five stage processes on a shared machine
 RATE = 3.0  # the log's 2.2 s between scans become 0.73 s: odometry, and so commands, above 1 Hz
@@ -304,6 +308,39 @@ def test_bad_robot_input_is_an_error_on_the_bridges_status_key_and_the_robot_bra
     errors = [(s.stage, s.reason) for _, s in graph.statuses if s.state == "error"]
     assert {stage for stage, _ in errors} == {ROS2.name}, errors  # nothing else was disturbed
     assert len(errors) == len(bad), errors
+
+
+@pytest.mark.slow
+def test_a_map_servers_map_on_map_is_planned_round_with_the_robots_margin(shared_dir, tmp_path) -> None:
+    scenario = load_scenario(DEPOT)
+    depot_yaml = shared_dir / "maps" / "depot.yaml"
+    walls = load_map(depot_yaml)
+    start, goal = scenario.start, np.asarray(scenario.goals[-1])
+    straight = np.linspace((start.x, start.y), goal, 200)
+    assert walls.clearance(straight).min() == 0.0  # the straight way runs into the depot's shelves
+    with robot_graph(tmp_path) as (endpoint, graph):
+        node = RosNode(graph.session, name="robot_base")
+        publishers = {name: node.publisher(topic=t.name, msgtype=t.msgtype, type_hash=t.type_hash, qos=t.qos)
+                      for name, t in BRIDGE_TOPICS.items() if t.direction == "in"}
+        publishers["map"].put(map_server_grid(depot_yaml))  # latched: the bridge, not started yet, asks for it
+        with run_ros2(DEPOT, endpoint=endpoint, graph=graph, cwd=tmp_path) as run:
+            deadline, t_s = time.monotonic() + 120.0, 1000.0
+            while len(graph.of("plan")) < 3 and time.monotonic() < deadline:
+                t_s += 0.1  # the robot stands at the start; its laser sees nothing
+                publishers["odom"].put(odometry(x=start.x, y=start.y, yaw=start.theta, t_s=t_s))
+                publishers["scan"].put(laser_scan(np.full(scenario.sensor.rays, np.inf), t_s=t_s, angle_min=-math.pi / 2,
+                                                  angle_increment=math.pi / scenario.sensor.rays))
+                time.sleep(0.1)
+            code, log = stop_run(run, cwd=tmp_path)
+        node.close()
+    assert code == 0, log[-3000:]
+    plans = graph.of("plan")
+    assert plans, f"no /plan; statuses: {[s.reason for _, s in graph.statuses][-10:]}"
+    for _, plan in plans:
+        points = np.array([(p.pose.position.x, p.pose.position.y) for p in plan.poses])
+        assert plan.header.frame_id == "odom"
+        assert math.dist(points[0], (start.x, start.y)) <= 0.05 and np.linalg.norm(points[-1] - goal) <= 1e-6
+        assert walls.clearance(points).min() >= scenario.inflation_m
 
 
 @pytest.mark.slow

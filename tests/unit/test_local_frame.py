@@ -31,6 +31,7 @@ from schemas.messages import (
     Ellipsoids,
     Goals,
     Header,
+    Map,
     Pose2D,
     RawPath,
     RobotState,
@@ -78,6 +79,7 @@ def _messages(at: float) -> list:
         World(header=_header(), scenario="w", bounds_min=p(-4.0, -4.0), bounds_max=p(19.0, 19.0), robot_width_m=0.3,
               robot_length_m=0.6, start=pose, goals=[p(10.0, 10.0)], goal_tolerance_m=0.3,
               polygons=[[p(3.0, 2.6), p(3.6, 2.9), p(3.3, 3.6)]], circles=[CircleMsg(center=p(8.0, 2.0), radius_m=1.0)]),
+        Map(header=_header(), width=2, height=2, resolution_m=0.5, origin=pose, cells=Map.pack_cells(bytes([0, 1, 2, 0]))),
     ]
 
 
@@ -86,7 +88,7 @@ def _coordinates(message) -> np.ndarray:
     out: list = []
     for name in ("points", "goals", "path", "raw_path"):
         out += list(getattr(message, name, []))
-    for pose in (getattr(message, "pose", None), getattr(message, "start", None)):
+    for pose in (getattr(message, "pose", None), getattr(message, "start", None), getattr(message, "origin", None)):
         if pose is not None:
             out.append((pose.x_m, pose.y_m))
     out += [pt for c in getattr(message, "clusters", []) for pt in c.points]

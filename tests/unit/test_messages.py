@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import math
+import re
+import zlib
 
 import pytest
 from pydantic import BaseModel, ValidationError
@@ -19,6 +22,7 @@ from schemas.messages import (
     Ellipsoids,
     Goals,
     Header,
+    Map,
     Pose2D,
     RawPath,
     RobotState,
@@ -80,6 +84,8 @@ EXAMPLES: dict[type[BaseModel], BaseModel] = {
         goals=[(10.0, 10.0)], goal_tolerance_m=0.3, polygons=[[(1.0, 1.0), (2.0, 1.0), (2.0, 2.0)]],
         circles=[CircleMsg(center=(5.0, 5.0), radius_m=1.0)],
     ),
+    Map: Map(header=HEADER, width=3, height=2, resolution_m=0.05, origin=Pose2D(x_m=-1.0, y_m=2.0, theta_rad=0.1),
+             cells=Map.pack_cells(bytes([0, 1, 2, 0, 0, 1]))),
 }
 
 
@@ -159,6 +165,36 @@ def test_negative_stamp_and_empty_cluster_rejected():
         ClusterMsg(cluster_id=0, points=[])
 
 
+def _map_with(cells: str, *, width: int = 3, height: int = 2) -> Map:
+    return Map(header=HEADER, width=width, height=height, resolution_m=0.05,
+               origin=Pose2D(x_m=0.0, y_m=0.0, theta_rad=0.0), cells=cells)
+
+
+@pytest.mark.parametrize("cells, reason", [
+    ("not base64!", "not base64 of a zlib stream"),
+    (base64.b64encode(b"not zlib").decode(), "not base64 of a zlib stream"),
+    (Map.pack_cells(bytes(5)), "5 bytes for a 3 x 2 grid (needs 6"),
+    (Map.pack_cells(bytes(7)), "more than 6 bytes for a 3 x 2 grid"),
+    (Map.pack_cells(bytes(6)) + Map.pack_cells(bytes(1)), "not base64"),  # padding inside: not one base64 text
+    (base64.b64encode(zlib.compress(bytes(6)) + b"x").decode(), "not one whole zlib stream"),
+    (base64.b64encode(zlib.compress(bytes(6))[:-2]).decode(), "not one whole zlib stream"),
+    (Map.pack_cells(bytes([0, 1, 2, 3, 0, 0])), "a byte that is not 0 (free), 1 (occupied) or 2 (unknown)"),
+])
+def test_a_maps_cells_must_inflate_to_exactly_its_grid_of_states(cells, reason):
+    with pytest.raises(ValidationError, match=re.escape(reason)):
+        _map_with(cells)
+
+
+def test_a_map_is_never_inflated_past_its_grid():
+    # A zlib bomb: 2^24 + 1 zero bytes in 16 kB for a grid of 2^24 cells; inflating stops one byte past the grid.
+    bomb = Map.pack_cells(bytes((1 << 24) + 1))
+    assert len(bomb) < 40_000
+    with pytest.raises(ValidationError, match="more than 16777216 bytes for a 4096 x 4096 grid"):
+        _map_with(bomb, width=4096, height=4096)
+    with pytest.raises(ValidationError, match="is more than the 16777216 a map may have"):
+        _map_with(Map.pack_cells(bytes(1)), width=4097, height=4096)
+
+
 def test_wiring_every_topic_has_one_publisher_per_run_and_a_subscriber():
     for topic in TOPICS.values():
         # A sim run's processes, or a ROS 2 robot's (the bridge in the sim's place): one publisher each.
@@ -169,6 +205,7 @@ def test_wiring_every_topic_has_one_publisher_per_run_and_a_subscriber():
         assert any(topic.name in spec.subscribes for spec in (*STAGES.values(), MONITOR))
     assert set(MONITOR.subscribes) == set(TOPICS)
     assert publishers_of("goals") == (ROS2.name,)
+    assert publishers_of("map") == (ROS2.name,) and TOPICS["map"].latched
     assert set(ROS2.subscribes) == set(SIM.subscribes) and ROS2.watches == SIM.watches
     for spec in PROCESSES.values():
         for name in (*spec.publishes, *spec.subscribes):

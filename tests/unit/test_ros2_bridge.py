@@ -15,12 +15,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ros2_bag import Recorded, aces_bag_dir, independent_decoder, read_mcap
-from ros2_messages import header, laser_scan, odometry, pose, ros, stamp
-from schemas.messages import EllipsoidMsg, Ellipsoids, Header, SmoothPath
+from ros2_messages import header, laser_scan, map_server_grid, occupancy_grid, odometry, pose, ros
+from schemas.messages import EllipsoidMsg, Ellipsoids, Header, Map, SmoothPath, decode, encode
+from schemas.occupancy import FREE, OCCUPIED, UNKNOWN, load_map
 from schemas.scenario import load_scenario
+from schemas.wiring import PIPELINE, subscribers_of
+from services.convert import grid_from_msg
+from services.limits import DEFAULT_MAX_PAYLOAD_BYTES
 from services.drive.vehicle import VehicleState, step
 from services.ros2 import typesupport
 from services.ros2.bridge import BridgeConfig, Ros2Bridge, body_twist
+from services.ros2.stage import BridgeStage
 from services.ros2.interface import BRIDGE_TOPICS
 
 SCENARIO = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
@@ -388,20 +393,63 @@ def test_a_goal_pose_replaces_the_scenarios_goals(bridge) -> None:
     assert bridge.goals.done and reached.pipeline == [] and (twist.linear.x, twist.angular.z) == (0.0, 0.0)
 
 
-def test_an_occupancy_grid_is_kept_as_an_array_with_its_resolution_and_origin(bridge) -> None:
+@pytest.mark.parametrize("name", ["external/carmen/aces-map.yaml", "maps/depot.yaml"])
+def test_a_map_servers_map_becomes_the_pipelines_map_as_load_map_reads_its_files(bridge, shared_dir, name) -> None:
+    path = shared_dir / name
+    output = put(bridge, "map", map_server_grid(path))
+    assert output.error is None and output.pipeline == []  # the map waits for the odometry to show its frame
+    first = put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0))
+    (topic, message), state = first.pipeline[0], first.pipeline[1]
+    assert topic == "map" and state[0] == "state"  # the map goes out before the first state
+    payload = encode(message)
+    assert len(payload) < DEFAULT_MAX_PAYLOAD_BYTES
+    grid, expected = grid_from_msg(decode(Map, payload, encoding=Map.encoding())), load_map(path)
+    np.testing.assert_array_equal(grid.state, expected.state)
+    assert grid.resolution_m == pytest.approx(expected.resolution_m, rel=1e-7)  # MapMetaData's is a float32
+    assert (grid.origin_x_m, grid.origin_y_m, grid.origin_yaw_rad) == (
+        expected.origin_x_m, expected.origin_y_m, expected.origin_yaw_rad)
+    assert all(name != "map" for name, _ in put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.1)).pipeline)
+
+
+def test_a_map_is_in_the_odometrys_frame_or_refused(bridge, shared_dir) -> None:
+    depot = shared_dir / "maps" / "depot.yaml"
+    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0))
+    refused = put(bridge, "map", map_server_grid(depot, frame="map"))
+    assert "map: frame 'map' is not the odometry's 'odom'" in refused.error and bridge.map is None
+    assert decoded(refused, "cmd_vel")[0].linear.x == 0.0
+    (topic, _), = put(bridge, "map", map_server_grid(depot)).pipeline  # the frame is known: out at once
+    assert topic == "map"
     data = np.array([0, 100, -1, 0, 0, 100], dtype=np.int8)
-    grid = ros("nav_msgs/msg/OccupancyGrid", header=header(0.0, "odom"),
-               info=ros("nav_msgs/msg/MapMetaData", map_load_time=stamp(0.0), resolution=0.05, width=3, height=2,
-                        origin=pose(-27.266, -48.329, 0.0)),
-               data=data)
-    output = put(bridge, "map", typesupport.encode(grid, "nav_msgs/msg/OccupancyGrid"))
-    known = output.known_map
-    assert output.error is None and known is bridge.known_map
-    np.testing.assert_array_equal(known.occupancy, [[0, 100, -1], [0, 0, 100]])
-    assert known.resolution_m == pytest.approx(0.05) and (known.origin.x_m, known.origin.y_m) == (-27.266, -48.329)
-    broken = dataclasses.replace(grid, data=data[:5])
-    assert "5 cells of data for a 3 x 2 grid" in put(bridge, "map", typesupport.encode(
-        broken, "nav_msgs/msg/OccupancyGrid")).error
-    # An odometry in another frame than the map's is refused.
+    broken = occupancy_grid(data[:5], width=3, height=2, resolution_m=0.05, origin=(0.0, 0.0))
+    assert "5 cells of data for a 3 x 2 grid" in put(bridge, "map", broken).error
+
+
+def test_a_map_whose_cells_do_not_compress_within_the_pipelines_payload_cap_is_refused(bridge) -> None:
+    noise = np.random.default_rng(7).choice(np.array([0, 100, -1], dtype=np.int8), size=2048 * 2048)
+    put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0))
+    refused = put(bridge, "map", occupancy_grid(noise, width=2048, height=2048, resolution_m=0.05, origin=(0.0, 0.0)))
+    assert f"more than the pipeline's {DEFAULT_MAX_PAYLOAD_BYTES} a message may have" in refused.error
+    assert refused.pipeline == [] and bridge.map is None
+
+
+def test_a_stage_that_reads_the_map_gets_it_again_when_it_comes_back(scenario, shared_dir) -> None:
+    stage = BridgeStage.from_scenario(scenario)
+    for name in PIPELINE:
+        assert stage.stage_alive(stage=name, alive=True, now_s=0.0) == []  # no map yet
+    stage.receive(port="map", key_expr=stage.bridge.keys["map"], payload=map_server_grid(shared_dir / "maps" /
+                                                                                        "depot.yaml"), now_s=0.0)
+    sent = [m for topic, m in stage.receive(port="odom", key_expr=stage.bridge.keys["odom"], now_s=0.1,
+                                            payload=odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0)) if topic == "map"]
+    for name in PIPELINE:
+        stage.stage_alive(stage=name, alive=False, now_s=0.2)
+        again = stage.stage_alive(stage=name, alive=True, now_s=0.3)
+        assert again == ([("map", sent[0])] if name in subscribers_of("map") else [])
+
+
+def test_an_odometry_in_another_frame_than_the_maps_is_refused(bridge) -> None:
+    grid = occupancy_grid([0, 100, -1, 0, 0, 100], width=3, height=2, resolution_m=0.05, origin=(-27.266, -48.329))
+    assert put(bridge, "map", grid).error is None
     assert "is not the map's 'odom'" in put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.0,
                                                                       frame="world")).error
+    (topic, message), _ = put(bridge, "odom", odometry(x=0.0, y=0.0, yaw=0.0, t_s=1.1)).pipeline
+    np.testing.assert_array_equal(grid_from_msg(message).state, [[FREE, OCCUPIED, UNKNOWN], [FREE, FREE, OCCUPIED]])
