@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 import signal
 import threading
 import time
@@ -162,18 +163,31 @@ def decode_sample(model: type[M], sample: zenoh.Sample, *, max_payload_bytes: in
     return decode(model, sample.payload.to_bytes(), encoding=str(sample.encoding))
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # compose, systemd and a dying parent stop a stage with SIGTERM
+
+
 def install_signal_handlers(stop_event: threading.Event) -> None:
-    """Set ``stop_event`` on SIGINT and SIGTERM (compose stops containers with SIGTERM).
+    """Set ``stop_event`` on SIGINT and SIGTERM, from a thread of its own.
 
-    Must be called from the main thread (a Python restriction on ``signal.signal``).
+    A Python signal handler runs in the main thread between two of its bytecodes, possibly inside
+    ``stop_event.set()`` or ``wait()`` themselves, whose lock is not reentrant: a handler that set the
+    event deadlocked a planner hit by two signals at once. So the C handler only writes the signal's
+    number to a pipe (``signal.set_wakeup_fd``), and a relay thread reading it sets the event.
+    Must be called once per process, from the main thread (a Python restriction on ``signal.signal``).
     """
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
 
-    def _stop(signum: int, _frame: object) -> None:
+    def relay() -> None:
+        while (signum := os.read(read_fd, 1)[0]) not in STOP_SIGNALS:
+            pass
         logger.info("received %s, stopping", signal.Signals(signum).name)
         stop_event.set()
 
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
+    threading.Thread(target=relay, name="signal-relay", daemon=True).start()
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, lambda _signum, _frame: None)  # a Python handler, so the C one writes the pipe
 
 
 _STATUS = "\0status"  # queue tags of the inputs that are not topics
