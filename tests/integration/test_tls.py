@@ -179,7 +179,9 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
             for what, key_expr in keys.items():
                 publishers[name, what].put(name)
                 publishers[name, what].delete()
-                session.get(key_expr, on_reply(name, what), timeout=SETTLE_S)
+                # Every session asks every key at once: an answer may take longer than a settle, and the
+                # replies are read only after the token phases below (about 5 settles on).
+                session.get(key_expr, on_reply(name, what), timeout=4 * SETTLE_S)
         # Tokens under every other name: none may reach anyone (a session sees its own locally).
         foreign = [session.liveliness().declare_token(alive_key(PREFIX, other))
                    for name, session in sessions.items() for other in names if other != name]
