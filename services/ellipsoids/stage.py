@@ -74,7 +74,7 @@ class EllipsoidsConfig:
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsConfig:
         return cls(inflation_m=scenario.inflation_m, reach=Reach.of(scenario),
-                   map_window_m=min(5.0, float(scenario.sensor.range)))
+                   map_window_m=min(cls.map_window_m, float(scenario.sensor.range)))
 
 
 @dataclass(frozen=True)
