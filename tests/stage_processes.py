@@ -4,7 +4,11 @@ and what /proc says of a process, for the e2e tests that signal them."""
 from __future__ import annotations
 
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 
 def _stat_fields(pid: int) -> list[str]:
@@ -43,3 +47,14 @@ def cpu_s(pid: int) -> float:
     """User + system CPU time of a process, in seconds."""
     fields = _stat_fields(pid)
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def wait_for(condition: Callable[[], object], *, what: str, timeout_s: float) -> object:
+    """`condition()`'s first truthy value, polled; the test fails naming `what` after `timeout_s` (a guard
+    against a hung test, not a speed requirement)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(0.02)
+    pytest.fail(f"gave up waiting for {what}")

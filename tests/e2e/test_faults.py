@@ -30,6 +30,7 @@ from schemas.scenario import bundled_scenario
 from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.drive.vehicle import VehicleLimits
 from services.shell.zenoh_config import build_zenoh_config
+import stage_processes
 from stage_processes import alive, argv, stage_pids
 
 PAPER = bundled_scenario()
@@ -39,13 +40,7 @@ WAIT_S = 90.0  # a guard against a hung run, not a speed requirement
 
 
 def wait_for(condition: Callable[[], object], *, what: str) -> object:
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.01)
-    pytest.fail(f"gave up waiting for {what}")
+    return stage_processes.wait_for(condition, what=what, timeout_s=WAIT_S)
 
 
 @dataclass

@@ -29,6 +29,7 @@ from schemas.scenario import bundled_scenario, load_scenario
 from schemas.wiring import default_prefix, key
 from services.shell.peers import wait_for_stages
 from services.shell.zenoh_config import build_zenoh_config
+import stage_processes
 from stage_processes import alive, cpu_s
 
 PREFIX = default_prefix()
@@ -36,12 +37,7 @@ WAIT_S = 60.0  # a guard against a hung test, not a speed requirement
 
 
 def wait_for(condition: Callable[[], object], *, what: str) -> object:
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        if value := condition():
-            return value
-        time.sleep(0.05)
-    pytest.fail(f"gave up waiting for {what}")
+    return stage_processes.wait_for(condition, what=what, timeout_s=WAIT_S)
 
 
 def under_way(session: zenoh.Session, *, sim_s: float = 1.0) -> None:
