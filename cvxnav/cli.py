@@ -70,7 +70,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
                      prefix=args.prefix or default_prefix(robot_id=args.robot_id), entry_point=args.entry,
                      options=options, out_path=args.out, state_dir=args.state_dir,
                      max_payload_bytes=args.max_payload_bytes or DEFAULT_MAX_PAYLOAD_BYTES,
-                     stall_limit_s=args.stall_limit_s)
+                     stall_limit_s=args.stall_limit_s, standby=args.standby)
     except (RunError, ViewerError) as error:
         raise CliError(str(error)) from None
     except zenoh.ZError as error:  # the session did not open: an endpoint it cannot listen on or reach
@@ -115,7 +115,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              noise_std_m=args.noise_std_m, seed=args.seed, show_progress=not args.quiet,
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
-                             record_messages=args.record_messages, keep_logs=args.keep_logs, robot=robot)
+                             record_messages=args.record_messages, keep_logs=args.keep_logs, robot=robot,
+                             warm_spares=args.warm_spares or robot is not None)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
@@ -397,6 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--noise-std-m", type=float, default=0.0, help="range noise (seeded)")
     run.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--warm-spares", action="store_true",
+                     help="keep a started spare process per pipeline stage, so a crashed stage is replaced at once "
+                          "(always on with --ros2)")
     run.add_argument("--keep-logs", action="store_true",
                      help="keep the run's folder of stage logs, configs and checkpoints (by default removed "
                           "unless the run failed)")
@@ -441,6 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument("--stall-limit-s", type=_positive_float, default=STALL_LIMIT_S, metavar="S",
                          help="under a watchdog (NOTIFY_SOCKET, WATCHDOG_USEC: systemd or cvxnav run), stop the "
                               f"keep-alives when one input takes longer than this (default {STALL_LIMIT_S:g})")
+    service.add_argument("--standby", action="store_true",
+                         help="a warm spare: build the core, then wait for a line on standard input before joining "
+                              "the network (end of input: exit 0)")
     planner = service.add_argument_group("planner")
     planner.add_argument("--deadline", action="store_true",
                          help="planner: answer each scan within the sensor's period, with the best verified path at "

@@ -5,12 +5,19 @@ The core is built and run in a worker thread, so the main thread keeps the signa
 a long solve stops the process within ``STOP_GRACE_S`` (it exits without a worker still busy then).
 Under a watchdog (``NOTIFY_SOCKET``, ``WATCHDOG_USEC``: systemd or `cvxnav run`) the process sends
 its keep-alives while the worker makes progress (``services.shell.watchdog``).
+
+A warm spare (``standby``) does everything but join the network: the interpreter, the imports and
+the core are ready when a line arrives on its standard input, and only then is its state restored
+(the checkpoint its predecessor left) and its session opened. End of input dismisses it: it exits 0
+without having opened a session. `cvxnav run` keeps one per pipeline stage in a robot run, so a stage
+that crashes is replaced by a process that is already up (``cvxnav.supervisor``).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import select
 import sys
 import threading
 from collections.abc import Mapping
@@ -44,6 +51,7 @@ def serve(
     max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
     state_dir: Path | None = None,
     stall_limit_s: float = STALL_LIMIT_S,
+    standby: bool = False,
 ) -> int:
     """Run process `name` until SIGINT/SIGTERM (the sim: until its run ends); the process exit code.
 
@@ -51,7 +59,8 @@ def serve(
     targets); the sim writes its run file to `out_path`. An input payload larger than
     `max_payload_bytes` is rejected before it is decoded. With `state_dir`, a `Stateful` core's state
     is saved there and restored from there. A pass of the worker longer than `stall_limit_s` stops
-    the keep-alives (a hang).
+    the keep-alives (a hang). With `standby`, the process waits, core built, for a line on its standard
+    input before it restores its state and opens its session; end of input (or a stop) dismisses it.
     """
     if name not in PROCESSES:
         raise RunError(f"unknown stage {name!r}; known: {', '.join(PROCESSES)}")
@@ -69,6 +78,8 @@ def serve(
     def work():
         core = load_factory(entry_point or PROCESSES[name].factory)(frame.scenario_to_local(scenario),
                                                                      **(options or {}))
+        if standby and not _called_up(stop):
+            return None  # dismissed
         run_stage(stage=name, core=core, session_config=session_config, prefix=prefix, stop_event=stop,
                   max_payload_bytes=max_payload_bytes, state_dir=state_dir, frame=frame, progress=progress)
         return core
@@ -80,9 +91,18 @@ def serve(
         logging.shutdown()
         sys.stderr.flush()
         os._exit(EXIT_WORKER_BUSY)
-    if name != SIM.name:
+    if name != SIM.name or core is None:
         return 0
     result = frame.to_world(core.result())
     if out_path is not None:
         result.write(out_path)
     return EXIT_BY_STATUS[result.status]
+
+
+def _called_up(stop: threading.Event) -> bool:
+    """Wait for a line on standard input: True once it comes, False at its end or when `stop` is set."""
+    while not stop.is_set():
+        readable, _, _ = select.select([sys.stdin], [], [], STOP_GRACE_S / 4)
+        if readable:
+            return bool(sys.stdin.readline())
+    return False

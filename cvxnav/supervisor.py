@@ -28,6 +28,11 @@ liveliness token when it is up, and the sim, which brakes while a stage's token 
 once the restarted pipeline answers. Stages that keep state no later input restores (the sensing
 stage's point memory, the planner's plan) checkpoint it under `--state-dir` (`services.shell.checkpoint`),
 one directory per stage, which outlives the process. The sim is not restarted: its exit ends the run.
+With `RunOptions.warm_spares` (`cvxnav run --warm-spares`, always in a robot run) the supervisor keeps,
+once the pipeline is up, a spare of each pipeline stage (`cvxnav service NAME --standby`: imported,
+its core built, off the network), started one at a time; a restart hands the stage to its spare (a
+line on its standard input: it restores the checkpoint and joins) instead of starting an interpreter,
+and a new spare is started behind it.
 
 A stage is swapped by naming, in a JSON `stages` file, either a Python entry point
 `"module:factory"` (called with the scenario, returning a StageCore), or
@@ -96,6 +101,7 @@ from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh
 
 logger = logging.getLogger(__name__)
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_SPARE_STAGGER_S = 1.0  # between the starts of two warm spares: each spends about a second of CPU
 
 
 class PipelineError(Exception):
@@ -169,6 +175,7 @@ class RunOptions:
     watchdog_s: float = 3.0
     stall_limit_s: float = STALL_LIMIT_S  # a stage stops its keep-alives when one input takes longer
     keep_logs: bool = False  # keep the run's directory of logs, configs and checkpoints whatever the outcome
+    warm_spares: bool = False  # a standby process per pipeline stage, ready to replace it (see the module's notes)
 
     @property
     def source(self) -> str:
@@ -283,6 +290,10 @@ class Supervisor:
         self.children: dict[str, Child] = {}  # the newest process of each stage
         self.restarts: list[Restart] = []
         self._restart_due: dict[str, float] = {}  # stage -> monotonic time its restart is due
+        self.spares: dict[str, subprocess.Popen] = {}  # stage -> its standby process
+        self._sparing = False  # set by keep_spares once the pipeline is up
+        self._unspared: set[str] = set()  # stages whose spare died in standby
+        self._next_spare_s = 0.0
         self.log_dir = Path(tempfile.mkdtemp(prefix="cvxnav-run-"))
         self.state_dir = self.log_dir / "state"
         self.notify = self._notify_socket()
@@ -355,19 +366,61 @@ class Supervisor:
     def start(self, name: str) -> Child:
         count = self.restart_count(name)
         log_path = self.log_dir / (f"{name}.log" if count == 0 else f"{name}.{count}.log")
-        env = dict(os.environ)
-        if self.notify is not None:
-            env.update(NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC=str(round(self.options.watchdog_s * 1e6)))
-        with open(log_path, "wb") as log:
-            process = subprocess.Popen(self._command(name), stdin=subprocess.DEVNULL, stdout=log,
-                                       stderr=subprocess.STDOUT, start_new_session=True, env=env,
-                                       preexec_fn=self._exit_with_me)
+        process = self._called_up(name)
+        if process is None:
+            process = self._spawn(self._command(name), log_path=log_path)
         choice = self.options.stages.get(name)
         speaks_watchdog = self.notify is not None and (choice is None or choice.command is None)
         child = Child(name=name, process=process, log_path=log_path,
                       first_beat_by_s=time.monotonic() + self.options.startup_timeout_s if speaks_watchdog else None)
         self.children[name] = child
         return child
+
+    def _spawn(self, command: list[str], *, log_path: Path, standby: bool = False) -> subprocess.Popen:
+        env = dict(os.environ)
+        if self.notify is not None:
+            env.update(NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC=str(round(self.options.watchdog_s * 1e6)))
+        with open(log_path, "wb") as log:
+            return subprocess.Popen(command, stdin=subprocess.PIPE if standby else subprocess.DEVNULL, stdout=log,
+                                    stderr=subprocess.STDOUT, start_new_session=True, env=env,
+                                    preexec_fn=self._exit_with_me)
+
+    def _called_up(self, name: str) -> subprocess.Popen | None:
+        """`name`'s spare, told to join the network; None when it has none (or it has died)."""
+        spare = self.spares.pop(name, None)
+        if spare is None:
+            return None
+        try:
+            spare.stdin.write(b"go\n")
+            spare.stdin.close()
+        except OSError:  # it died: its pipe is broken
+            spare.wait()
+            return None
+        return spare
+
+    def keep_spares(self) -> None:
+        """With `warm_spares`, start a spare for one pipeline stage that has none (one a second at most,
+        so they do not crowd the running stages' CPU). Called once the pipeline is up, then by `supervise`."""
+        self._sparing = self.options.warm_spares
+        now = time.monotonic()
+        if not self._sparing or now < self._next_spare_s:
+            return
+        for name in PIPELINE:
+            spare = self.spares.get(name)
+            choice = self.options.stages.get(name)
+            if spare is not None and spare.poll() is not None:  # its core failed to build: restarts start afresh
+                logger.warning("stage %s: its warm spare exited with code %d; no more spares for it", name,
+                               spare.returncode)
+                self._unspared.add(name)
+                del self.spares[name]
+            if (spare is not None or name in self._unspared or name not in self.children
+                    or (choice is not None and choice.command is not None)):
+                continue
+            # It will serve the next restart: its log is that restart's.
+            log_path = self.log_dir / f"{name}.{self.restart_count(name) + 1}.log"
+            self.spares[name] = self._spawn([*self._command(name), "--standby"], log_path=log_path, standby=True)
+            self._next_spare_s = now + _SPARE_STAGGER_S
+            return
 
     def watch(self) -> None:
         """Take the keep-alives that arrived; SIGKILL every child whose keep-alives stopped.
@@ -417,12 +470,15 @@ class Supervisor:
                 continue
             due = self._restart_due.get(name)
             if due is None:
-                self._restart_due[name] = now + self._backoff(child, now=now)
-            elif now >= due:
+                due = self._restart_due[name] = now + self._backoff(child, now=now)
+            if now >= due:
                 del self._restart_due[name]
+                spare = self.spares.get(name)
                 restarted = self.start(name)
-                logger.warning("stage %s restarted (pid %d, restart %d)", name, restarted.process.pid,
-                               self.restart_count(name))
+                logger.warning("stage %s restarted (pid %d, restart %d%s)", name, restarted.process.pid,
+                               self.restart_count(name), ", its warm spare" if restarted.process is spare else "")
+        if self._sparing:
+            self.keep_spares()
 
     def _backoff(self, child: Child, *, now: float) -> float:
         """Record the exit of `child`; the delay before its restart, or PipelineError if it keeps crashing."""
@@ -434,6 +490,8 @@ class Supervisor:
                                 f"{options.restart_window_s:.0f} s, last code {code}): {child.log_tail(lines=3)}")
         self.restarts.append(Restart(stage=child.name, exit_code=code, found_s=now))
         delay = min(options.restart_backoff_max_s, options.restart_backoff_s * 2.0 ** len(recent))
+        if not recent and child.name in self.spares:
+            delay = 0.0  # the first exit in the window: its spare takes over at once
         how = f"hung ({child.hung}) and was killed" if child.hung else f"exited with code {code}"
         logger.warning("stage %s %s; restarting it in %.1f s: %s", child.name, how, delay, child.log_tail(lines=1))
         return delay
@@ -441,7 +499,11 @@ class Supervisor:
     def stop(self) -> None:
         """SIGTERM every child, SIGKILL those still running after the grace period."""
         children = list(self.children.values())
-        killed = stop_processes([child.process for child in children], grace_s=self.options.stop_grace_s)
+        for spare in self.spares.values():
+            if spare.stdin is not None and not spare.stdin.closed:
+                spare.stdin.close()  # end of input: a spare leaves at once
+        killed = stop_processes([child.process for child in children] + list(self.spares.values()),
+                                grace_s=self.options.stop_grace_s)
         for child in children:
             if child.process in killed:
                 logger.warning("stage %s ignored SIGTERM; it was killed", child.name)
@@ -549,6 +611,7 @@ def run_pipeline(*, options: RunOptions, scenario: Scenario) -> tuple[int, RunFi
             if options.monitor_args is not None:
                 supervisor.start(MONITOR.name)  # before the sim, so it sees the world and the first scan
             _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s)
+            supervisor.keep_spares()
             options.out_path.unlink(missing_ok=True)  # what is there after the run is this run's, or nothing
             sim = supervisor.start(SIM.name)
             sim_started = True
@@ -663,6 +726,7 @@ def run_robot(*, options: RunOptions, scenario: Scenario, stop_event: threading.
             if options.monitor_args is not None:
                 supervisor.start(MONITOR.name)
             _wait_alive(session, supervisor, timeout_s=options.startup_timeout_s, stop_event=stop_event)
+            supervisor.keep_spares()
             if not stop_event.is_set():
                 supervisor.start(ROS2.name)
                 _follow_robot(supervisor=supervisor, stop_event=stop_event, plans=lambda: plans,

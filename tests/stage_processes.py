@@ -21,18 +21,30 @@ def argv(pid: int) -> list[str]:
     return [arg.decode() for arg in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") if arg]
 
 
-def stage_pids(parent_pid: int) -> dict[str, int]:
-    """The child processes of ``parent_pid`` that run a stage, by stage name."""
-    pids = {}
+def _stage_processes(parent_pid: int) -> dict[str, list[tuple[int, int]]]:
+    """The live child processes of ``parent_pid`` that run a stage: by stage name, (start time, pid), oldest first."""
+    found: dict[str, list[tuple[int, int]]] = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
+        pid = int(stat.parent.name)
         try:
-            parent = int(_stat_fields(int(stat.parent.name))[1])
-            args = argv(int(stat.parent.name))
+            fields = _stat_fields(pid)
+            args = argv(pid)
         except (OSError, IndexError, ValueError):
             continue  # exited while we looked
-        if parent == parent_pid and "service" in args:
-            pids[args[args.index("service") + 1]] = int(stat.parent.name)
-    return pids
+        if int(fields[1]) == parent_pid and fields[0] != "Z" and "service" in args:
+            found.setdefault(args[args.index("service") + 1], []).append((int(fields[19]), pid))
+    return {name: sorted(processes) for name, processes in found.items()}
+
+
+def stage_pids(parent_pid: int) -> dict[str, int]:
+    """The stage processes of a run, by stage name: of two, the older (a warm spare is started after its stage,
+    and the one that took a stage's place is older than the spare started behind it)."""
+    return {name: processes[0][1] for name, processes in _stage_processes(parent_pid).items()}
+
+
+def spare_pids(parent_pid: int) -> dict[str, int]:
+    """A run's warm spares (`cvxnav run --warm-spares`), by the name of the stage each stands by for."""
+    return {name: processes[-1][1] for name, processes in _stage_processes(parent_pid).items() if len(processes) > 1}
 
 
 def alive(pid: int) -> bool:

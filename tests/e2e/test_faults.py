@@ -31,7 +31,7 @@ from schemas.wiring import alive_key, default_prefix, key, stage_of_alive_key
 from services.drive.vehicle import VehicleLimits
 from services.shell.zenoh_config import build_zenoh_config
 import stage_processes
-from stage_processes import alive, argv, stage_pids
+from stage_processes import alive, argv, spare_pids, stage_pids
 
 PAPER = bundled_scenario()
 PIPELINE = ("sensing", "ellipsoids", "planner", "smoother")
@@ -86,6 +86,17 @@ class Kill:
     back_after_s: float  # wall time from the signal to its token
 
 
+def observer_config(children: dict[str, int]) -> zenoh.Config:
+    """A peer connected to every stage's listen endpoint, read from the config file on its command line."""
+    commands = [argv(pid) for pid in children.values()]
+    config = build_zenoh_config(connect=[endpoint for args in commands for endpoint in
+                                         json.loads(Path(args[args.index("--config") + 1]).read_text())
+                                         ["listen"]["endpoints"]])
+    # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
+    config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
+    return config
+
+
 def speeds(run: RunFile) -> tuple[np.ndarray, np.ndarray]:
     """Sim time and footprint speed of each trajectory step."""
     traj = np.array(run.trajectory)
@@ -106,14 +117,8 @@ def killed_run(request, tmp_path_factory) -> tuple[subprocess.CompletedProcess, 
     try:
         children = wait_for(lambda: (found := stage_pids(proc.pid)) and "sim" in found and found,
                             what="the sim to start")
-        commands = [argv(pid) for pid in children.values()]
-        config = build_zenoh_config(connect=[endpoint for args in commands for endpoint in
-                                             json.loads(Path(args[args.index("--config") + 1]).read_text())
-                                             ["listen"]["endpoints"]])
-        # Reconnect quickly to a restarted stage, so its token is seen when it is back, not seconds later.
-        config.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 200}))
         observer = Observer()
-        with zenoh.open(config) as session:
+        with zenoh.open(observer_config(children)) as session:
             subscribers = (session.declare_subscriber(key(PREFIX, "state"), observer.on_state),
                            session.liveliness().declare_subscriber(alive_key(PREFIX, "*"), observer.on_alive,
                                                                    history=True))
@@ -200,3 +205,42 @@ def test_a_stage_that_crashes_on_start_ends_the_run_with_exit_4_and_one_clear_li
     assert proc.stderr.count("stage planner restarted") == 4
     assert "Traceback" not in last
     assert not (tmp_path / "run.json").exists()
+
+
+def test_a_warm_spare_takes_a_killed_stage_s_place_and_no_process_is_left(tmp_path):
+    """`--warm-spares`: the killed planner's place goes to its spare, which was up before the kill."""
+    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--warm-spares", "--out", "run.json"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        spares = wait_for(lambda: len(found := spare_pids(proc.pid)) == len(PIPELINE) and found,
+                          what="a spare of every pipeline stage")
+        children = stage_pids(proc.pid)
+        observer = Observer()
+        with zenoh.open(observer_config(children)) as session:
+            subscribers = (session.declare_subscriber(key(PREFIX, "state"), observer.on_state),
+                           session.liveliness().declare_subscriber(alive_key(PREFIX, "*"), observer.on_alive,
+                                                                   history=True))
+            wait_for(lambda: observer.speed_mps > 0.3, what="the car to drive")
+            with observer.lock:
+                index = len(observer.events)
+            signalled = time.monotonic()
+            os.kill(children["planner"], signal.SIGKILL)
+            wait_for(lambda: observer.back_since("planner", index), what="the planner's token to come back")
+            back_after_s = time.monotonic() - signalled
+            # The replacement is a spare started after the one that took over.
+            new_spare = wait_for(lambda: (pid := spare_pids(proc.pid).get("planner")) and pid != spares["planner"]
+                                 and pid, what="a new spare of the planner")
+            for subscriber in subscribers:
+                subscriber.undeclare()
+        stdout, stderr = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=30.0)
+    print(f"warm spare: planner token back {back_after_s:.2f} s after its SIGKILL")  # for docs/faults.md
+    assert proc.returncode == 0, stderr[-2000:]
+    assert f"stage planner restarted (pid {spares['planner']}, restart 1, its warm spare)" in stderr
+    run = RunFile.read(tmp_path / "run.json")
+    assert run.status == "reached" and run.goals_reached == len(PAPER.goals)
+    # Every stage and every spare (the promoted one and the ones never called up) is gone with the run.
+    assert not [pid for pid in [*children.values(), *spares.values(), new_spare] if alive(pid)]

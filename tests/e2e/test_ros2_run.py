@@ -44,7 +44,7 @@ from services.ros2.interface import BRIDGE_NODE, BRIDGE_TOPICS
 from services.ros2.wire import EntityKind, parse_token
 from services.shell.ros2 import Attachment, RosNode
 from services.shell.zenoh_config import build_zenoh_config
-from stage_processes import alive, stage_pids
+from stage_processes import alive, spare_pids, stage_pids
 
 ACES = Path(__file__).resolve().parents[1] / "data" / "aces-bridge.json"
 DEPOT = Path(__file__).resolve().parents[1] / "data" / "depot-bridge.json"
@@ -146,12 +146,13 @@ def stop_run(process: subprocess.Popen, *, cwd: Path) -> tuple[int, str]:
     """SIGTERM the run, as a service manager would: its exit code and output; every stage must be gone."""
     stages = stage_pids(process.pid)
     assert set(stages) == {*PIPELINE, ROS2.name}
+    pids = [*stages.values(), *spare_pids(process.pid).values()]  # a robot run keeps warm spares
     process.send_signal(signal.SIGTERM)
     code = process.wait(timeout=60)
     deadline = time.monotonic() + 10.0
-    while any(alive(pid) for pid in stages.values()) and time.monotonic() < deadline:
+    while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert not any(alive(pid) for pid in stages.values())
+    assert not any(alive(pid) for pid in pids)
     return code, (cwd / "run.log").read_text()
 
 
@@ -360,8 +361,8 @@ def test_a_hung_stage_or_bridge_is_replaced_and_a_killed_run_leaves_nothing_runn
         graph.wait(lambda: graph.bridge_entities() == BRIDGE_GRAPH, timeout_s=STARTUP_S,
                    what="the new bridge's node in the graph")
         assert not [pid for pid in stopped.values() if alive(pid)]  # nothing stopped is left behind
-        stages = stage_pids(run.pid)
-        run.kill()  # nothing of the supervisor runs: the stages notice their parent is gone
+        stages = {**{f"{name} (spare)": pid for name, pid in spare_pids(run.pid).items()}, **stage_pids(run.pid)}
+        run.kill()  # nothing of the supervisor runs: the stages and their spares notice their parent is gone
         run.wait()
         deadline = time.monotonic() + 10.0
         while any(alive(pid) for pid in stages.values()) and time.monotonic() < deadline:

@@ -129,6 +129,35 @@ def test_a_stage_in_a_long_solve_honours_sigterm_without_finishing_it(tmp_path):
     assert "its worker was still busy" in log.read_text()
 
 
+@pytest.mark.parametrize("dismissal", ["end of input", "SIGTERM"])
+def test_a_standby_stage_stays_off_the_network_until_called_and_leaves_when_dismissed(tmp_path, dismissal):
+    """`cvxnav service NAME --standby` (a warm spare) builds its core but opens no session: it listens
+    nowhere, and no token of it is seen; end of its input or SIGTERM ends it with exit 0."""
+    port = free_ports(1)[0]
+    proc = subprocess.Popen([sys.executable, "-m", "cvxnav", "service", "smoother", "--standby",
+                             "--listen", f"tcp/127.0.0.1:{port}"], stdin=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        def settled() -> bool:  # its imports done and its core built: it waits, spending nothing
+            before = cpu_s(proc.pid)
+            time.sleep(0.5)
+            return before > 0.3 and cpu_s(proc.pid) == before
+
+        wait_for(settled, what="the spare to stand by")
+        with zenoh.open(build_zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            assert wait_for_stages(session, prefix=PREFIX, stages=("smoother",), timeout_s=1.0) == {"smoother"}
+        assert proc.poll() is None  # waiting for its cue
+        if dismissal == "SIGTERM":
+            proc.send_signal(signal.SIGTERM)
+        else:
+            proc.stdin.close()
+        assert proc.wait(timeout=WAIT_S) == 0, proc.stderr.read().decode()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 def test_an_out_file_in_a_missing_folder_is_refused_before_anything_starts(tmp_path, own_tmpdir):
     out = tmp_path / "nowhere" / "run.json"
     proc = subprocess.run([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", str(out)], cwd=tmp_path,
