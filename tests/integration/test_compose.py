@@ -75,3 +75,14 @@ def test_one_stage_is_swapped_by_variables():
     assert services["planner"]["image"] == "example/planner:dev"
     assert services["planner"]["command"] == ["my-planner", "--connect", "tcp/router:7447"]
     assert services["smoother"]["image"] == "cvxnav:latest"
+
+
+def test_the_ros2_profile_runs_the_bridge_in_the_sims_place_and_the_planner_on_its_deadline():
+    proc = _config("--format", "json", env={"COMPOSE_PROFILES": "ros2", "PLANNER_FLAGS": "--deadline"})
+    assert proc.returncode == 0, proc.stderr
+    services = json.loads(proc.stdout)["services"]
+    bridge = services[ROS2.name]
+    assert bridge["command"][:3] == ["cvxnav", "service", ROS2.name]
+    assert bridge["command"][bridge["command"].index("--connect") + 1] == "tcp/router:7447"
+    assert set(bridge["depends_on"]) == {"router", *STAGES} - {SIM.name}  # `up ros2` starts no sim
+    assert services["planner"]["command"][-1] == "--deadline"
