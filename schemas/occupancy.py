@@ -293,6 +293,18 @@ def _irregular(path: Path, *, max_bytes: int | None) -> str | None:
     return None
 
 
+def map_readers():
+    """(yaml, PIL.Image, PIL.UnidentifiedImageError): the modules `load_map` reads a map with, imported
+    when first asked for (a scenario without a map does not pay for them), Pillow's drivers for the common
+    formats (PGM, PNG among them) loaded too. `cvxnav plan` asks before its clock starts, as it imports
+    the planner: its `load` time is reading the files, not the interpreter importing (30–40 ms)."""
+    import yaml
+    from PIL import Image, UnidentifiedImageError
+
+    Image.preinit()
+    return yaml, Image, UnidentifiedImageError
+
+
 def load_map(path: str | Path) -> OccupancyGrid:
     """Read a Nav2 `map_server` map: its YAML and the image it names (relative to the YAML).
 
@@ -304,9 +316,7 @@ def load_map(path: str | Path) -> OccupancyGrid:
     default was 0.196, slam_toolbox issue #587). In `raw` mode a pixel v ≤ 100 is occupancy v / 100
     and a larger one unknown. Every problem is one line naming the field.
     """
-    import yaml
-    from PIL import Image, UnidentifiedImageError
-
+    yaml, Image, UnidentifiedImageError = map_readers()
     path = Path(path)
     source = path.name
     try:
