@@ -384,8 +384,9 @@ def plan_in_corridor(
                 fitted = cover.pieces(tiles)
             planned = {id(piece) for piece in used}
             others = [piece for piece in fitted if id(piece) not in planned]
-            hit = np.union1d(_entered(others, plan.points, level=1.0),
-                             _entered(others, smoothed.points, level=_CURVE_LEVEL))
+            stack = _grown_stack(others)
+            hit = np.union1d(_entered(stack, plan.points, level=1.0),
+                             _entered(stack, smoothed.points, level=_CURVE_LEVEL))
             if not len(hit):
                 break
             used += [others[k] for k in hit.tolist()]
@@ -475,7 +476,7 @@ def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:
 def _grown_stack(pieces: list[GridPiece]) -> EllipseStack:
     """The pieces' grown ellipses stacked from their arrays, A made symmetric as `Ellipse` makes it (the
     same stack as `EllipseStack.of` their `grown`, without making an `Ellipse` of each)."""
-    Ab = np.array([p.grown_Ab for p in pieces])
+    Ab = np.array([p.grown_Ab for p in pieces]).reshape(-1, 2, 3)
     A = Ab[:, :, :2]
     return EllipseStack(A=0.5 * (A + A.transpose(0, 2, 1)), b=np.ascontiguousarray(Ab[:, :, 2]))
 
@@ -489,12 +490,11 @@ def _near(pieces: list[GridPiece], line: FloatArray, distance_m: float) -> set[i
     return set(np.flatnonzero(gap <= distance_m).tolist())
 
 
-def _entered(pieces: list[GridPiece], path: FloatArray, *, level: float) -> IntArray:
-    """Indices of the pieces whose grown ellipse some segment of the polyline comes within `level` of
-    (eq. 2, exact)."""
-    if not pieces or len(path) < 2:
+def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray:
+    """Indices of the ellipses some segment of the polyline comes within `level` of (eq. 2, exact)."""
+    if not len(stack) or len(path) < 2:
         return np.zeros(0, dtype=np.intp)
-    _, cols, levels = _grown_stack(pieces).segment_pairs(path[:-1], path[1:])
+    _, cols, levels = stack.segment_pairs(path[:-1], path[1:])
     return np.unique(cols[levels < level])
 
 
