@@ -249,8 +249,15 @@ class OccupancyGrid:
 
         blocked = self.padded_blocked(slice(rows.start - halo, rows.stop + halo),
                                       slice(cols.start - halo, cols.stop + halo))
-        distance = ndimage.distance_transform_edt(~blocked)
-        return distance[halo:-halo or None, halo:-halo or None] * self.resolution_m
+        # The feature transform (each cell's nearest blocked cell); the distances from it over the window
+        # alone, not its halo: the square root of the same whole number scipy's distances take.
+        nearest = ndimage.distance_transform_edt(~blocked, return_distances=False, return_indices=True)
+        n_rows, n_cols = rows.stop - rows.start, cols.stop - cols.start
+        dy = (nearest[0, halo : halo + n_rows, halo : halo + n_cols]
+              - np.arange(halo, halo + n_rows, dtype=nearest.dtype)[:, None]).astype(float)
+        dx = (nearest[1, halo : halo + n_rows, halo : halo + n_cols]
+              - np.arange(halo, halo + n_cols, dtype=nearest.dtype)[None, :]).astype(float)
+        return np.sqrt(dy * dy + dx * dx) * self.resolution_m
 
 
 def _square_distance(g: FloatArray, centres: FloatArray, half: float) -> FloatArray:
