@@ -4,9 +4,10 @@ A grid planner pays for the whole map (a distance transform and a Dijkstra over 
 what the query can use is built:
 
 1. A coarse search (`CoarseGrid`): the blocked cells pooled into coarse cells of side s (a coarse cell
-   is blocked when any of its cells is), one distance transform of that small grid, and Dijkstra
-   (scipy.sparse.csgraph) over the coarse cells a robot could be in. A coarse cell C holding a point x at
-   least r from every blocked cell is at most r − s√2 from the nearest blocked coarse cell C′ (centre to
+   is blocked when any of its cells is), the cells closer than r − s√2 to a blocked one (centre to
+   centre) closed too, by a dilation of that small grid, and Dijkstra (scipy.sparse.csgraph) over the
+   coarse cells a robot could be in. A coarse cell C holding a point x at
+   least r from every blocked cell is at least r − s√2 from the nearest blocked coarse cell C′ (centre to
    centre): else, with q any blocked cell in C′, dist(x, q) ≤ s/√2 + dist(C, C′) + s/√2 < r. So the
    coarse graph keeps every coarse cell a path can use and every step between neighbours it can take:
    when it has no path, no path exists at all, and the planner says so. Its answer is the shortest path
@@ -89,7 +90,7 @@ class CoarseRoute:
 @dataclass(eq=False)
 class CoarseGrid:
     """The coarse cells a robot of clearance `margin_m` may be in, on a grid of `coarse_m` cells (the map
-    and a ring of blocked coarse cells round it), and the 8-connected shortest paths among them."""
+    and a ring of blocked coarse cells round it), and the 16-connected shortest paths among them."""
 
     grid: OccupancyGrid
     margin_m: float
