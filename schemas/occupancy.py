@@ -249,8 +249,15 @@ class OccupancyGrid:
 
         blocked = self.padded_blocked(slice(rows.start - halo, rows.stop + halo),
                                       slice(cols.start - halo, cols.stop + halo))
-        distance = ndimage.distance_transform_edt(~blocked)
-        return distance[halo:-halo or None, halo:-halo or None] * self.resolution_m
+        # The feature transform (each cell's nearest blocked cell); the distances from it over the window
+        # alone, not its halo: the square root of the same whole number scipy's distances take.
+        nearest = ndimage.distance_transform_edt(~blocked, return_distances=False, return_indices=True)
+        n_rows, n_cols = rows.stop - rows.start, cols.stop - cols.start
+        dy = (nearest[0, halo : halo + n_rows, halo : halo + n_cols]
+              - np.arange(halo, halo + n_rows, dtype=nearest.dtype)[:, None]).astype(float)
+        dx = (nearest[1, halo : halo + n_rows, halo : halo + n_cols]
+              - np.arange(halo, halo + n_cols, dtype=nearest.dtype)[None, :]).astype(float)
+        return np.sqrt(dy * dy + dx * dx) * self.resolution_m
 
 
 def _square_distance(g: FloatArray, centres: FloatArray, half: float) -> FloatArray:
@@ -293,6 +300,18 @@ def _irregular(path: Path, *, max_bytes: int | None) -> str | None:
     return None
 
 
+def map_readers():
+    """(yaml, PIL.Image, PIL.UnidentifiedImageError): the modules `load_map` reads a map with, imported
+    when first asked for (a scenario without a map does not pay for them), Pillow's drivers for the common
+    formats (PGM, PNG among them) loaded too. `cvxnav plan` asks before its clock starts, as it imports
+    the planner: its `load` time is reading the files, not the interpreter importing (30–40 ms)."""
+    import yaml
+    from PIL import Image, UnidentifiedImageError
+
+    Image.preinit()
+    return yaml, Image, UnidentifiedImageError
+
+
 def load_map(path: str | Path) -> OccupancyGrid:
     """Read a Nav2 `map_server` map: its YAML and the image it names (relative to the YAML).
 
@@ -304,9 +323,7 @@ def load_map(path: str | Path) -> OccupancyGrid:
     default was 0.196, slam_toolbox issue #587). In `raw` mode a pixel v ≤ 100 is occupancy v / 100
     and a larger one unknown. Every problem is one line naming the field.
     """
-    import yaml
-    from PIL import Image, UnidentifiedImageError
-
+    yaml, Image, UnidentifiedImageError = map_readers()
     path = Path(path)
     source = path.name
     try:

@@ -4,9 +4,10 @@ A grid planner pays for the whole map (a distance transform and a Dijkstra over 
 what the query can use is built:
 
 1. A coarse search (`CoarseGrid`): the blocked cells pooled into coarse cells of side s (a coarse cell
-   is blocked when any of its cells is), one distance transform of that small grid, and Dijkstra
-   (scipy.sparse.csgraph) over the coarse cells a robot could be in. A coarse cell C holding a point x at
-   least r from every blocked cell is at most r − s√2 from the nearest blocked coarse cell C′ (centre to
+   is blocked when any of its cells is), the cells closer than r − s√2 to a blocked one (centre to
+   centre) closed too, by a dilation of that small grid, and Dijkstra (scipy.sparse.csgraph) over the
+   coarse cells a robot could be in. A coarse cell C holding a point x at
+   least r from every blocked cell is at least r − s√2 from the nearest blocked coarse cell C′ (centre to
    centre): else, with q any blocked cell in C′, dist(x, q) ≤ s/√2 + dist(C, C′) + s/√2 < r. So the
    coarse graph keeps every coarse cell a path can use and every step between neighbours it can take:
    when it has no path, no path exists at all, and the planner says so. Its answer is the shortest path
@@ -89,7 +90,7 @@ class CoarseRoute:
 @dataclass(eq=False)
 class CoarseGrid:
     """The coarse cells a robot of clearance `margin_m` may be in, on a grid of `coarse_m` cells (the map
-    and a ring of blocked coarse cells round it), and the 8-connected shortest paths among them."""
+    and a ring of blocked coarse cells round it), and the 16-connected shortest paths among them."""
 
     grid: OccupancyGrid
     margin_m: float
@@ -106,8 +107,20 @@ class CoarseGrid:
         # Coarse cell (a, b) holds the map's cells from ((a − 1) k, (b − 1) k): a ring beyond the map.
         self.nr, self.nc = -(-rows // k) + 2, -(-cols // k) + 2
         blocked = self.grid.padded_blocked(slice(-k, (self.nr - 1) * k), slice(-k, (self.nc - 1) * k))
-        pooled = blocked.reshape(self.nr, k, self.nc, k).any(axis=(1, 3))
-        self.passable = ndimage.distance_transform_edt(~pooled) * self.s >= self.margin_m - self.s * _DIAGONAL
+        pooled = _pooled(blocked, k)
+        # Passable: at least margin − s√2 from every blocked coarse cell, centre to centre, i.e. no blocked
+        # cell at an offset (di, dj) with s √(di² + dj²) below that (the float square root of the same
+        # whole number a distance transform takes): a dilation of the blocked cells by those offsets.
+        reach = self.margin_m - self.s * _DIAGONAL
+        n = max(0, int(math.ceil(reach / self.s)))
+        di, dj = np.mgrid[-n : n + 1, -n : n + 1]
+        disc = np.sqrt((di * di + dj * dj).astype(float)) * self.s < reach
+        if not disc.any():
+            self.passable = np.ones(pooled.shape, dtype=bool)
+        elif disc.size == 1:
+            self.passable = ~pooled
+        else:
+            self.passable = ~ndimage.binary_dilation(pooled, structure=disc)
 
     def refine(self, window: DistanceWindow, *, watch: np.ndarray | None = None) -> int:
         """Close the coarse cells inside the window none of whose cells is within half a cell's diagonal
@@ -161,14 +174,20 @@ class CoarseGrid:
                                    f"({self.margin_m:.3f} m) of a blocked cell: no path")
         nodes, graph = self._nodes()
         targets = np.searchsorted(nodes, wb * self.nc + wa)
-        # Only cells a near-shortest path can use matter: the search stops at twice the longest leg's
-        # straight length and a turn round a building (and goes on without a limit if that misses a goal).
+        # Only cells a near-shortest path can use matter: the search from each leg's start stops at twice
+        # the longest leg's straight length and a turn round a building (and goes on without a limit if
+        # that misses a goal). The last goal's distances serve only its leg's corridor, cells within
+        # (1 + slack) of that leg's length of it: its search stops there.
         legs = np.linalg.norm(np.diff(waypoints, axis=0), axis=1)
         limit = 2.0 * float(legs.max()) + 20.0
-        dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True, limit=limit)
+        dist, pred = dijkstra(graph, indices=targets[:-1], return_predecessors=True, limit=limit)
         if not all(np.isfinite(dist[k, targets[k + 1]]) and dist[k, targets[k + 1]] * (1.0 + slack) <= limit
                    for k in range(len(targets) - 1)):
-            dist, pred = dijkstra(graph, directed=False, indices=targets, return_predecessors=True)
+            dist, pred = dijkstra(graph, indices=targets[:-1], return_predecessors=True)
+        last = float(dist[-1, targets[-1]])
+        to_last = (dijkstra(graph, indices=targets[-1:], limit=(1.0 + slack) * last + 1e-6) if np.isfinite(last)
+                   else np.full((1, len(nodes)), np.inf))
+        dist = np.vstack([dist, to_last])
         chain, ends = [int(targets[0])], [0]
         near = np.zeros(len(nodes), dtype=bool)
         total = 0.0
@@ -205,6 +224,20 @@ class CoarseGrid:
                            leg_lengths_m=tuple(np.diff(at_waypoints).tolist()))
 
 
+def _pooled(blocked: np.ndarray, k: int) -> np.ndarray:
+    """Which k × k blocks of the mask hold a blocked cell: an OR of the k rows of each block, then of the
+    k columns (numpy's `any` over the strided axes of a (rows, k, columns, k) view is ten times slower)."""
+    rows = blocked.reshape(-1, k, blocked.shape[1])
+    out = rows[:, 0].copy()
+    for q in range(1, k):
+        out |= rows[:, q]
+    blocks = out.reshape(out.shape[0], -1, k)
+    pooled = blocks[:, :, 0].copy()
+    for q in range(1, k):
+        pooled |= blocks[:, :, q]
+    return pooled
+
+
 def _pulled(path: FloatArray, passable: np.ndarray, *, keep: np.ndarray) -> IntArray:
     """The vertices of the path (coarse-cell coordinates from the map's corner) that string pulling keeps,
     in order: every vertex is dropped that a straight line over passable coarse cells can skip (an
@@ -239,28 +272,32 @@ _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1), (1, 2), (2, 1), (1, -2), (2, -1))
 
 
 def _grid_graph(passable: np.ndarray, index: np.ndarray, step_m: float) -> sparse.csr_array:
-    """The 16-connected graph of the passable cells, edges weighted by their centres' distance. A knight's
-    move is taken only when both cells it passes beside are passable too (so it cuts no blocked corner
-    the two king's moves round it would not)."""
-    rows, cols, weights = [], [], []
+    """The 16-connected graph of the passable cells, edges weighted by their centres' distance, each edge
+    stored both ways (Dijkstra on it as a directed graph does not transpose it on every call, as
+    scipy's undirected search does), built row by row as CSR (no sorting of pairs). A knight's move is
+    taken only when both cells it passes beside are passable too (so it cuts no blocked corner the two
+    king's moves round it would not)."""
     n_rows, n_cols = passable.shape
+    open_ = np.pad(passable, 2)
+    number = np.pad(index, 2, constant_values=-1)
 
-    def shifted(dr: int, dc: int) -> tuple[slice, slice]:  # cells (r + dr, c + dc) for the window's (r, c)
-        return slice(dr + pad_r, n_rows - pad_r_hi + dr), slice(dc + pad_c, n_cols - pad_c_hi + dc)
+    def at(dr: int, dc: int) -> tuple[slice, slice]:  # cells (r + dr, c + dc) of the padded grid for every (r, c)
+        return slice(2 + dr, 2 + dr + n_rows), slice(2 + dc, 2 + dc + n_cols)
 
-    for dr, dc in _STEPS:
-        pad_r, pad_r_hi = 0, dr  # dr ≥ 0 always
-        pad_c, pad_c_hi = max(0, -dc), max(0, dc)
-        a, b = shifted(0, 0), shifted(dr, dc)
-        ok = passable[a] & passable[b]
+    steps = _STEPS + tuple((-dr, -dc) for dr, dc in _STEPS)
+    n = int(passable.sum())
+    ok = np.empty((n, len(steps)), dtype=bool)
+    neighbour = np.empty((n, len(steps)), dtype=index.dtype)
+    for k, (dr, dc) in enumerate(steps):
+        step_ok = open_[at(dr, dc)]
         if abs(dr) + abs(dc) == 3:  # knight: the two cells beside its line
             sr, sc = (dr // 2, dc) if abs(dr) == 2 else (dr, dc // 2)
-            ok &= passable[shifted(sr, sc)] & passable[shifted(dr - sr, dc - sc)]
-        rows.append(index[a][ok])
-        cols.append(index[b][ok])
-        weights.append(np.full(len(rows[-1]), math.hypot(dr, dc) * step_m))
-    n = int(passable.sum())
-    return sparse.csr_array((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+            step_ok = step_ok & open_[at(sr, sc)] & open_[at(dr - sr, dc - sc)]
+        ok[:, k] = step_ok[passable]  # node by node, in the nodes' order (row-major)
+        neighbour[:, k] = number[at(dr, dc)][passable]
+    weights = np.broadcast_to(np.array([math.hypot(dr, dc) * step_m for dr, dc in steps]), ok.shape)
+    indptr = np.concatenate([[0], np.cumsum(np.count_nonzero(ok, axis=1))])
+    return sparse.csr_array((weights[ok], neighbour[ok], indptr), shape=(n, n))
 
 
 @dataclass(frozen=True)
@@ -348,8 +385,9 @@ def plan_in_corridor(
                 fitted = cover.pieces(tiles)
             planned = {id(piece) for piece in used}
             others = [piece for piece in fitted if id(piece) not in planned]
-            hit = np.union1d(_entered([p.grown for p in others], plan.points, level=1.0),
-                             _entered([p.grown for p in others], smoothed.points, level=_CURVE_LEVEL))
+            stack = _grown_stack(others)
+            hit = np.union1d(_entered(stack, plan.points, level=1.0),
+                             _entered(stack, smoothed.points, level=_CURVE_LEVEL))
             if not len(hit):
                 break
             used += [others[k] for k in hit.tolist()]
@@ -436,20 +474,28 @@ def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:
     return np.flatnonzero(~dropped).tolist()
 
 
+def _grown_stack(pieces: list[GridPiece]) -> EllipseStack:
+    """The pieces' grown ellipses stacked from their arrays, A made symmetric as `Ellipse` makes it (the
+    same stack as `EllipseStack.of` their `grown`, without making an `Ellipse` of each)."""
+    Ab = np.array([p.grown_Ab for p in pieces]).reshape(-1, 2, 3)
+    A = Ab[:, :, :2]
+    return EllipseStack(A=0.5 * (A + A.transpose(0, 2, 1)), b=np.ascontiguousarray(Ab[:, :, 2]))
+
+
 def _near(pieces: list[GridPiece], line: FloatArray, distance_m: float) -> set[int]:
     """The pieces whose grown ellipse's bounding disc comes within `distance_m` of one of the points."""
     if not pieces:
         return set()
-    stack = EllipseStack.of([p.grown for p in pieces])
+    stack = _grown_stack(pieces)
     gap = cKDTree(line).query(stack.centers)[0] - stack.reach
     return set(np.flatnonzero(gap <= distance_m).tolist())
 
 
-def _entered(ellipses: list[Ellipse], path: FloatArray, *, level: float) -> IntArray:
+def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray:
     """Indices of the ellipses some segment of the polyline comes within `level` of (eq. 2, exact)."""
-    if not ellipses or len(path) < 2:
+    if not len(stack) or len(path) < 2:
         return np.zeros(0, dtype=np.intp)
-    _, cols, levels = EllipseStack.of(ellipses).segment_pairs(path[:-1], path[1:])
+    _, cols, levels = stack.segment_pairs(path[:-1], path[1:])
     return np.unique(cols[levels < level])
 
 

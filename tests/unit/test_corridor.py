@@ -5,9 +5,12 @@ cover, and as short as the plan made on the whole cover."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
+import pytest
+from scipy import ndimage
 
 from services.geometry import EllipseStack, polyline_length
 from cvxnav.plan import PlanSettings, plan_on_model, plan_scenario
@@ -94,6 +97,19 @@ def test_the_coarse_grid_keeps_every_cell_a_path_can_use():
             assert closed > 0
         g = grid.to_grid(clear) / coarse.s + 1.0
         assert coarse.passable[np.floor(g[:, 1]).astype(int), np.floor(g[:, 0]).astype(int)].all()
+
+
+@pytest.mark.parametrize("margin", [0.05, 0.2, 0.45, 0.566, 1.0, 1.7])
+def test_the_passable_coarse_cells_are_those_at_least_margin_less_a_diagonal_from_a_blocked_one(margin: float):
+    """The dilation `CoarseGrid` closes cells by is the distance transform's test, cell for cell: a coarse
+    cell is passable when its centre is at least r − s√2 from every blocked coarse cell's."""
+    grid = _room(1.2)
+    coarse = CoarseGrid(grid, margin, 0.2)
+    k = coarse.k
+    blocked = grid.padded_blocked(slice(-k, (coarse.nr - 1) * k), slice(-k, (coarse.nc - 1) * k))
+    pooled = blocked.reshape(coarse.nr, k, coarse.nc, k).any(axis=(1, 3))
+    clear = ndimage.distance_transform_edt(~pooled) * coarse.s >= margin - coarse.s * math.sqrt(2.0)
+    assert np.array_equal(coarse.passable, clear)
 
 
 def test_no_way_through_is_no_path_with_the_coarse_grids_reason():
