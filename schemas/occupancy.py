@@ -336,7 +336,7 @@ def load_map(path: str | Path) -> OccupancyGrid:
     except (OSError, UnicodeDecodeError) as exc:
         raise MapError(f"{path}: cannot read the map file: {getattr(exc, 'strerror', None) or exc}") from None
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # libyaml's, where PyYAML has it
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
