@@ -137,6 +137,9 @@ def _bad_maps(tmp_path: Path) -> list[tuple[str, str]]:
     cases.append(("mode.yaml", "obstacles[0].map: mode.yaml: mode: must be trinary, scale or raw, got 'fancy'"))
     (folder / "nomap.yaml").write_text("image: x.pgm\nresolution: [0.05]\norigin: [0, 0, 0]\n")
     cases.append(("nomap.yaml", "obstacles[0].map: nomap.yaml: resolution: must be a finite number, got [0.05]"))
+    (folder / "broken.yaml").write_text("image: [x.pgm\nresolution: 0.05\n")
+    cases.append(("broken.yaml", "obstacles[0].map: broken.yaml: invalid YAML at line 2 column 11: did not find "
+                                 "expected ',' or ']'"))
     cases.append(("absent.yaml", "obstacles[0].map: "))
     return cases
 
