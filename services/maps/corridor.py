@@ -38,6 +38,7 @@ import math
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Literal
 
 import numpy as np
@@ -66,7 +67,7 @@ class CorridorSettings:
     # metric error (2.7 %, `_STEPS`), which a route the optimum follows may be charged.
     slack: float = 0.03
     band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
-    near_m: float = 0.4  # ... and their ellipses within this of it planned among
+    near_m: float = 0.2  # ... and their ellipses within this of it planned among
     keep_to_corridor: bool = True  # search the route within the corridor (see `_Corridor`)
     keep_m: float = 1.5  # the corridor keeps this much round the start and goals
     max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
@@ -483,12 +484,21 @@ def _grown_stack(pieces: list[GridPiece]) -> EllipseStack:
 
 
 def _near(pieces: list[GridPiece], line: FloatArray, distance_m: float) -> set[int]:
-    """The pieces whose grown ellipse's bounding disc comes within `distance_m` of one of the points."""
+    """The pieces whose grown ellipse may come within `distance_m` of one of the points: those with a
+    point z where neither lower bound on its distance to the ellipse exceeds it, the bounding disc's
+    (‖z − c‖ − reach) nor the level's ((‖A z + b‖ − 1) × the smallest semi-axis, since ‖A‖ is its
+    inverse)."""
     if not pieces:
         return set()
     stack = _grown_stack(pieces)
-    gap = cKDTree(line).query(stack.centers)[0] - stack.reach
-    return set(np.flatnonzero(gap <= distance_m).tolist())
+    tree = cKDTree(line)
+    lists = tree.query_ball_point(stack.centers, r=stack.reach + distance_m)
+    counts = np.fromiter(map(len, lists), dtype=int, count=len(lists))
+    cols = np.repeat(np.arange(len(stack)), counts)
+    points = line[np.fromiter(chain.from_iterable(lists), dtype=int, count=int(counts.sum()))]
+    u = np.einsum("kij,kj->ki", stack.A[cols], points) + stack.b[cols]
+    gap = (np.linalg.norm(u, axis=1) - 1.0) * stack.semi_axes[cols, 1]
+    return set(np.unique(cols[gap <= distance_m]).tolist())
 
 
 def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray:

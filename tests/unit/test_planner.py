@@ -57,6 +57,55 @@ def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
         assert np.array_equal(got, expected)
 
 
+@pytest.mark.parametrize("count, extent, semi, reach_m", [
+    (300, 30.0, (0.1, 2.0), 6.0),  # a tangent graph's segments, metres long, along walls of many ellipses
+    (3000, 300.0, (0.05, 0.5), 1.0),  # a scan-built model's: many small ellipses, short segments, far apart
+])
+def test_the_swept_broad_phase_keeps_every_pair_at_level_at_most_one_with_the_trees_levels(count, extent, semi, reach_m):
+    """Every pair (segment, ellipse) at level ≤ 1 by the dense exact test is kept, by segment then ellipse,
+    with the level the KD-tree's broad phase gives it; the pairs left out are outside the bounding disc.
+    A segment of length zero and a very short one are among them."""
+    rng = np.random.default_rng(count)
+    stack = EllipseStack.of(_random_ellipses(rng, count, extent=extent, semi=semi))
+    p = rng.uniform(0, extent, (1500, 2))
+    q = p + rng.normal(0.0, reach_m, (1500, 2))
+    q[0], q[1] = p[0], p[1] + 0.01
+    rows, cols, levels = stack.segment_pairs_swept(p, q)
+    assert np.all(np.diff(rows * len(stack) + cols) > 0)
+    dense = stack.segment_levels(p, q)
+    touching = set(zip(*np.nonzero(dense <= 1.0)))
+    kept = dict(zip(zip(rows.tolist(), cols.tolist()), levels.tolist()))
+    assert len(touching) > 40 and touching <= set(kept)
+    tree_rows, tree_cols, tree_levels = stack.segment_pairs(p, q)
+    tree = dict(zip(zip(tree_rows.tolist(), tree_cols.tolist()), tree_levels.tolist()))
+    assert len(kept) < len(tree) and all(tree[pair] == level for pair, level in kept.items())
+    left = [pair for pair in tree if pair not in kept]
+    i, j = np.array(left).T
+    d = q[i] - p[i]
+    t = np.clip(np.einsum("ij,ij->i", stack.centers[j] - p[i], d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
+    assert np.all(np.linalg.norm(p[i] + t[:, None] * d - stack.centers[j], axis=1) > stack.reach[j])
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_the_tangent_graph_on_the_swept_broad_phase_finds_the_kd_trees_route(seed, monkeypatch):
+    """A field of about 150 ellipses, two goals: the route searched with the swept broad phase is, to the bit,
+    the one searched with the KD-tree's (which keeps a superset of its pairs)."""
+    rng = np.random.default_rng(seed)
+    start, goals = np.array([0.5, 0.5]), np.array([[19.5, 19.0], [1.0, 19.5]])
+    ellipses = [e for e in _random_ellipses(rng, 150, extent=20.0, semi=(0.1, 1.2))
+                if np.all(e.level(np.vstack([start, goals])) > 1.05)]  # the terminals outside every one
+
+    def route():
+        return tangent_route(start=start, goals=goals, ellipses=ellipses, bounds_min=np.array([-1.0, -1.0]),
+                             bounds_max=np.array([21.0, 21.0]))
+
+    swept = route()
+    monkeypatch.setattr(EllipseStack, "segment_pairs_swept", lambda self, p, q: self.segment_pairs(p, q))
+    tree = route()
+    assert swept is not None and tree is not None
+    assert all(np.array_equal(a, b) for a, b in zip(swept, tree, strict=True))
+
+
 def test_intersected_names_the_crossed_ellipses():
     ellipses = [Ellipse.circle(center=[5, 0], radius=1), Ellipse.circle(center=[5, 3], radius=1)]
     assert intersected(np.array([[0.0, 0.0], [10.0, 0.0]]), ellipses).tolist() == [0]

@@ -32,7 +32,8 @@ and Dijkstra on it).
   the speed ‖A⁻¹ u′(θ)‖).
 
 Tangent points inside another ellipse are dropped; every remaining tangent segment is checked exactly
-against the other ellipses (eq. 2 on the continuous segment). In a dense field nearly all of them are
+against the other ellipses whose bounding disc it reaches (eq. 2 on the continuous segment; the pairs
+from `EllipseStack.segment_pairs_swept`). In a dense field nearly all of them are
 blocked, most through the depth of some ellipse: a point sampled on the segment in a grid cell wholly
 inside an ellipse proves that at a fraction of the exact test's cost (`cells.DeepCells`, built once enough
 segments wait for a test to pay for the grid), so only the rest get the exact one. Dijkstra then picks

@@ -145,7 +145,7 @@ class _TangentGraph:
                 sure = self.deep.blocked(seg.p[k], seg.q[k])
                 self.status[pick[k[sure]]] = 2
                 k = k[~sure]
-            rows, cols, levels = self.stack.segment_pairs(seg.p[k], seg.q[k])
+            rows, cols, levels = self.stack.segment_pairs_swept(seg.p[k], seg.q[k])
             hit = (levels < 1.0 - _BLOCK_TOL) & (cols != seg.owner_p[k][rows]) & (cols != seg.owner_q[k][rows])
             blocked = np.zeros(len(k), dtype=bool)
             blocked[rows[hit]] = True
