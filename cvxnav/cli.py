@@ -452,8 +452,9 @@ def build_parser() -> argparse.ArgumentParser:
                               "the network (end of input: exit 0)")
     planner = service.add_argument_group("planner")
     planner.add_argument("--deadline", action="store_true",
-                         help="planner: answer each scan within the sensor's period, with the best verified path at "
-                              "hand (live runs; lockstep runs wait for the best)")
+                         help="planner: answer each scan within a quarter of the sensor's period, with the best "
+                              "verified path at hand, replanning in the background (live runs; lockstep runs wait "
+                              "for the best)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")

@@ -129,7 +129,7 @@ class RawPath(Message):
     """The planner's piecewise-linear path, with the ellipsoids it avoided so the smoother can verify."""
 
     SCHEMA: ClassVar[str] = "cvxnav.RawPath"
-    VERSION: ClassVar[int] = 2  # 2: plan_id and reason
+    VERSION: ClassVar[int] = 3  # 2: plan_id and reason; 3: replanning
 
     header: Header
     scan_seq: NonNegativeInt
@@ -141,13 +141,16 @@ class RawPath(Message):
     # consumer can count replans without comparing paths.
     plan_id: NonNegativeInt = 0
     reason: str = ""  # why there is no path (status no_path); empty otherwise
+    # no_path for now, with no verdict yet: a replan goes on in the background (to the sim, as if the
+    # answer were still to come: no brake, no back-out, as from a no_path verdict)
+    replanning: bool = False
 
 
 class SmoothPath(Message):
     """The smoothed centre line; ``min_level`` = min over the curve of ||A z + b|| (> 1 is clear)."""
 
     SCHEMA: ClassVar[str] = "cvxnav.SmoothPath"
-    VERSION: ClassVar[int] = 2  # 2: plan_id and reason
+    VERSION: ClassVar[int] = 3  # 2: plan_id and reason; 3: replanning
 
     header: Header
     scan_seq: NonNegativeInt
@@ -158,6 +161,7 @@ class SmoothPath(Message):
     min_level: float
     plan_id: NonNegativeInt = 0  # the RawPath's plan_id this curve smooths
     reason: str = ""  # why there is no path (status no_path); empty otherwise
+    replanning: bool = False  # the RawPath's: no_path with no verdict yet, a replan under way
 
 
 class RobotState(Message):

@@ -226,7 +226,9 @@ class SimCore:
         ellipse), or that starts against the car's heading, is not driven (the car brakes); the reason
         is returned. An answer to a scan older than `stale_after_s` (realtime, after a link was cut) is
         no verdict on where the car is now: a path it rejects, or its no_path, only brakes the car, and
-        never starts a back-out.
+        never starts a back-out. Nor is the planner's no_path while it replans in the background
+        (`replanning`): the car goes on as if the answer were still to come, on its path while that is
+        fresh and clear of what the guard knows, as it does while a late answer is on its way.
         """
         verdict = self.no_plan if self.t_s - answer.header.stamp_s <= self.config.stale_after_s else self.reject
         for cell in self.carried.pop(answer.scan_seq, ()):  # the restarted sensing stage has had them
@@ -235,6 +237,8 @@ class SimCore:
             return None
         if not self.plan_ids or self.plan_ids[-1] != answer.plan_id:
             self.plan_ids.append(answer.plan_id)
+        if answer.status == "no_path" and answer.replanning:
+            return None  # no verdict yet: as if the answer were still to come
         if answer.status == "no_path":
             verdict(answer.reason)
             return None

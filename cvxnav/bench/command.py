@@ -33,6 +33,9 @@ def add_bench_parser(commands: argparse._SubParsersAction) -> None:
     bench.add_argument("--closed-loop", action="store_true",
                        help="instead: drive each scenario's closed loop with the stage cores in this process "
                             "(outcome, length ÷ reference, per-stage latency)")
+    bench.add_argument("--deadline", action="store_true",
+                       help="with --closed-loop: the planner answers each scan within its budget (the sensor "
+                            "period), as in a live run, replanning in the background")
     bench.add_argument("--quiet", action="store_true", help="no progress bar")
     bench.set_defaults(handler=run_command)
 
@@ -72,6 +75,8 @@ def run_command(args: argparse.Namespace) -> int:
 
     if args.repeats is not None and args.repeats < 1:
         raise CliError(f"--repeats must be at least 1, got {args.repeats}")
+    if args.deadline and not args.closed_loop:
+        raise CliError("--deadline is an option of --closed-loop")
     if args.budget_s is not None and not args.budget_s > 0:
         raise CliError(f"--budget-s must be positive, got {args.budget_s}")
     options = BenchOptions.quick_defaults(repeats=args.repeats) if args.quick else BenchOptions()
@@ -140,9 +145,9 @@ def _closed_loop(scenarios: list, args: argparse.Namespace, *, map_files: list[P
     with Progress(*columns, console=Console(stderr=True), disable=args.quiet) as bar:
         for scenario in scenarios:
             task = bar.add_task(scenario.name, total=default_time_limit_s(scenario))
-            rows.append(run_closed_loop(scenario, reference_m=references.get(scenario.name),
+            rows.append(run_closed_loop(scenario, reference_m=references.get(scenario.name), deadline=args.deadline,
                                         on_step=lambda sim_s, task=task: bar.update(task, completed=sim_s)))
-    report = ClosedLoopReport(rows=rows)
+    report = ClosedLoopReport(rows=rows, deadline=args.deadline)
     table = closed_loop_markdown(report)
     Console(width=200).print(Markdown(table))
     if args.json is not None:

@@ -184,8 +184,8 @@ def plan_path(
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
     cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
-    tight to turn in — and refined once more against the true ellipses. Once `late()` (a deadline has
-    passed), no further route is tried after one that refined clear.
+    tight to turn in — and refined once more against the true ellipses. Once `late()` (the replan was
+    called off), no further route is tried after one that refined clear.
     """
     start = np.asarray(start, dtype=float)
     goals = np.asarray(goals, dtype=float).reshape(-1, 2)
@@ -266,12 +266,10 @@ def plan_path(
 
 @dataclass(frozen=True)
 class Attempted:
-    """What `plan_within` found: the plan, its smoothed curve (as `plan_until_verified` returns them), and
-    the attempt to resume at when the deadline cut the ladder short (None: it was not cut)."""
+    """What `plan_within` found: the plan and its smoothed curve (as `plan_until_verified` returns them)."""
 
     plan: PathPlan
     smoothed: Smoothed | None
-    resume_at: int | None = None
 
 
 def margin_ladder(settings: RefineSettings, repairs: tuple[tuple[float, float], ...]) -> list[RefineSettings]:
@@ -311,25 +309,22 @@ def plan_within(
     ladder: list[RefineSettings],
     timer: Callable[[str], AbstractContextManager] = nullcontext,
     late: Callable[[], bool] = lambda: False,
-    first: int = 0,
     **problem,
 ) -> Attempted:
-    """`plan_until_verified` on the `ladder` of settings from attempt `first` on, cut short once `late()`.
+    """`plan_until_verified` on the `ladder` of settings, cut short once `late()` (a replan called off).
 
-    A deadline is checked between attempts (a solve is not interrupted): once it has passed, the ladder
-    stops before its next attempt, and `resume_at` says which that was, so the next input can go on
-    from there instead of trying again what already failed. Within an attempt, `plan_path` stops
-    trying routes once one refined clear. Whatever is returned unverified is never published.
+    `late` is checked between attempts (a solve is not interrupted): once it is true, the ladder stops
+    before its next attempt. Within an attempt, `plan_path` stops trying routes once one refined clear.
+    Whatever is returned unverified is never published.
     """
     fallback: Attempted | None = None
     too_sharp: list[RefineSettings] = []  # attempts whose curve broke the curvature bound
-    for index in range(first, len(ladder)):
-        attempt = ladder[index]
+    for attempt in ladder:
         if any(attempt.level >= failed.level and attempt.curvature_factor <= failed.curvature_factor
                for failed in too_sharp):
             continue
         if fallback is not None and late():
-            return replace(fallback, resume_at=index)
+            return fallback
         with timer("optimize"):
             plan = plan_path(**problem, settings=attempt, late=late)
         if plan.status != "ok":
@@ -342,6 +337,5 @@ def plan_within(
         if smoothed.verification.max_curvature > problem["max_curvature"]:
             too_sharp.append(attempt)
         fallback = Attempted(plan, smoothed)
-    if fallback is None:  # `first` was past the ladder's end
-        raise ValueError(f"no attempt from {first} on a ladder of {len(ladder)}")
+    assert fallback is not None  # the first attempt is never skipped
     return fallback

@@ -14,10 +14,21 @@ within a turning radius of it given up down to the run's hard floor (`relieved_s
 boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
 tracks (`sim.core`): the planner plans forward motion only.
 
-With a budget (`PlannerConfig.budget_s`, a live run's sensor period) a replan that overruns it stops
-before its next attempt: it publishes what verified, or `no_path` with the deadline's reason (never an
-unverified plan), goes on from that attempt with the next scan, and says so on the status key (a
-``Notice``). A lockstep run has no budget: the sim waits for the answer.
+With a budget (`PlannerConfig.budget_s`: in a live run a quarter of the sensor period) every scan is
+answered within it, and repairs and replans go on in the background. The foreground only checks what
+the stage has: the current plan trimmed to the robot and re-verified against the scan's ellipses. A
+repair or replan runs on a worker thread (`_Replan`: one at a time, from a snapshot of the scan's
+inputs, `_Scan`), and the scan waits for it while the budget lasts: one done by then answers it, as
+without a budget. Otherwise the scan is answered with the current plan, trimmed and re-verified, if it
+still holds (it was made before a goal was reached and runs through the goals ahead), else with
+`no_path` — never an unverified plan — marked `replanning` with the reason "replanning: ..." (no
+verdict yet: the sim goes on as if the answer were still to come), or, when the last replan that ended
+found no verified path, with its reason (a verdict, as without a budget). The status key says so too (a ``Notice``). A later
+scan adopts the worker's plan only after the same trim and re-verification against its own ellipses as
+any kept plan, and starts a new replan from its own inputs when that fails. New goals and `restore()`
+call a running replan off (it stops before its next attempt, and what it made is dropped); `stop()`
+waits for it too (`_STOP_WAIT_S` at most: a solve is not interrupted). A lockstep run has no budget: it
+repairs and replans in the foreground, the sim waits for the answer, and its trajectories repeat.
 
 Inputs are checked on arrival (``services.limits``): a state must put the robot inside the map with
 a goal count the scenario has, and an ellipse set is bounded in size and reach; a rejected one never
@@ -36,9 +47,11 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import shapely
@@ -64,7 +77,14 @@ _REPAIR_MIN_LEVEL = 0.5
 # A repair that has not met the curvature bound in this many solves gives way to the next margin or
 # to a replan: repairs that took more went on to fail verification.
 _REPAIR_ITERATIONS_UNMET = 4
-_LATE = "deadline: no verified path within the budget yet; the replan goes on with the next scan"
+_REPLANNING = ("replanning: no verified path for this scan within the budget; the replan goes on in the "
+               "background")
+# With a deadline, the planner's share of the sensor period: sensing, ellipsoids, smoother and the hops
+# between them take the rest.
+_PERIOD_SHARE = 0.25
+# How long `stop()` waits for a replan it called off: within the shell's grace for the whole stop
+# (services.shell.stage.STOP_GRACE_S), with room for closing the session.
+_STOP_WAIT_S = 1.0
 _BOXED_IN = ("boxed in: every forward turn the car can make from here crosses an obstacle, even with the margin "
              "near it given up to the hard floor")
 
@@ -95,8 +115,9 @@ class PlannerConfig:
     max_cross_track_m: float = 0.5  # farther than this from the plan: replan from where the robot is
     repair_slack_m: float = 0.5  # a warm repair of the plan may lengthen it by this much (`_repair`)
     repair_rejoin_m: float = 3.0  # ... and re-optimises it this far past the last stretch it must move
-    # Seconds an answer may take (None: no deadline); past it a replan stops before its next attempt
-    # (`_replan`). Lockstep runs keep none: the sim waits for the answer, and their trajectories repeat.
+    # Seconds an answer may take (None: no deadline): a repair or replan runs in the background, and the
+    # scan waits for it this long at most. Lockstep runs keep none: the sim waits for the answer, and
+    # their trajectories repeat.
     budget_s: float | None = None
 
     @classmethod
@@ -214,6 +235,57 @@ def scaled(ellipses: list[Ellipse], scales: FloatArray) -> list[Ellipse]:
     return out
 
 
+@dataclass(frozen=True)
+class _Scan:
+    """One scan's inputs, made ready to plan from: a background replan's snapshot."""
+
+    message: Ellipsoids
+    goal_base: int  # goals reached
+    position: FloatArray
+    heading_rad: float
+    goals: FloatArray  # those ahead
+    ellipses: list[Ellipse]  # the sensed ones, any the robot is inside shrunk off it (`free_start_scales`)
+    relieved: list[Ellipse] | None  # ... and the margin near the robot given up to the hard floor, if it was
+
+
+@dataclass(frozen=True)
+class _Made:
+    """A plan a repair or replan made (None: no path), and the ellipses it was checked against; `reason`:
+    why there is none, or why the plan made does not verify (only a lockstep run publishes it then)."""
+
+    points: FloatArray | None
+    goal_base: int
+    relieved: bool
+    margin: int
+    used: list[Ellipse]
+    reason: str = ""
+
+
+class _Replan:
+    """A repair or replan (`work(late=)`, `late` saying whether it was called off) on a daemon thread of its own."""
+
+    def __init__(self, scan: _Scan, work: Callable[..., _Made]) -> None:
+        self.scan = scan
+        self.called_off = threading.Event()
+        self.done = threading.Event()
+        self.made: _Made | None = None
+        self.error: Exception | None = None  # raised in the foreground when the replan is collected
+        self._thread = threading.Thread(target=self._run, args=(work,), name="planner-replan", daemon=True)
+        self._thread.start()
+
+    def _run(self, work: Callable[..., _Made]) -> None:
+        try:
+            self.made = work(late=self.called_off.is_set)
+        except Exception as error:
+            self.error = error
+        finally:
+            self.done.set()
+
+    def join(self, timeout_s: float) -> bool:
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+
 class PlannerStage:
     def __init__(self, *, config: PlannerConfig, clock: Callable[[], float] = time.perf_counter) -> None:
         self.config = config
@@ -227,15 +299,36 @@ class PlannerStage:
         self._seq = 0
         self._state: tuple[tuple[int, int], bytes] | None = None  # `state()` as of (plan_id, goal base)
         self._clock = clock
-        # (goal base, attempt): where a replan the deadline cut short goes on (`_replan`), None when none was.
-        self._resume: tuple[int, int] | None = None
+        self._replan_job: _Replan | None = None  # the background replan (with a budget), until collected
+        self._verdict = ""  # why the last background replan collected made no verified plan ("" when it did)
+
+    @property
+    def replanning(self) -> bool:
+        """Whether a background replan is running."""
+        return self._replan_job is not None and not self._replan_job.done.is_set()
+
+    def stop(self, *, now_s: float) -> Outputs:
+        """Call a running replan off and wait for it, `_STOP_WAIT_S` at most (a solve is not interrupted)."""
+        job, self._replan_job = self._replan_job, None
+        if job is not None:
+            job.called_off.set()
+            if not job.join(_STOP_WAIT_S):
+                logger.warning("a replan called off was still running %.1f s after the stop", _STOP_WAIT_S)
+        return []
+
+    def _call_off(self) -> None:
+        """Drop what a running replan makes (it stops before its next attempt); one at a time still holds."""
+        if self._replan_job is not None:
+            self._replan_job.called_off.set()
+        self._verdict = ""
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, *, deadline: bool = False) -> PlannerStage:
-        """The planner of `scenario`; with `deadline`, each answer's budget is the sensor's period (a live run)."""
+        """The planner of `scenario`; with `deadline`, each answer's budget is its share of the sensor's
+        period (a live run: `_PERIOD_SHARE`)."""
         config = PlannerConfig.from_scenario(scenario)
         if deadline:
-            config = replace(config, budget_s=1.0 / float(scenario.sensor.rate_hz))
+            config = replace(config, budget_s=_PERIOD_SHARE / float(scenario.sensor.rate_hz))
         return cls(config=config)
 
     def state(self) -> bytes:
@@ -259,6 +352,7 @@ class PlannerStage:
             raise StateError(f"not a plan checkpoint: {error!r}") from None
         if plan is not None and not np.all(np.isfinite(plan)):
             raise StateError("the plan has non-finite points")
+        self._call_off()
         self.plan, self.plan_goal_base, self.plan_id = plan, goal_base, plan_id
 
     def process(self, *, topic: str, message: BaseModel, now_s: float) -> Outputs:
@@ -272,7 +366,8 @@ class PlannerStage:
             goals = np.asarray(message.goals, dtype=float).reshape(-1, 2)
             self.config.reach.check_goals(goals, what="goals")
             self.config = replace(self.config, goals=goals)
-            self.plan, self.plan_goal_base, self._resume = None, 0, None
+            self._call_off()
+            self.plan, self.plan_goal_base = None, 0
             return []
         if isinstance(message, RobotState):
             self._check_state(message)
@@ -299,15 +394,15 @@ class PlannerStage:
     def _plan(self, message: Ellipsoids, state: RobotState) -> Outputs:
         started_s = self._clock()
         budget_s = self.config.budget_s
-        late = (lambda: False) if budget_s is None else (lambda: self._clock() - started_s > budget_s)
-        outputs = self._answer(message, state, late=late)
-        if budget_s is not None and late():
-            over = (f"deadline: answered in {(self._clock() - started_s) * 1e3:.0f} ms, over the "
-                    f"{budget_s * 1e3:.0f} ms budget")
-            outputs.append(("raw_path", Notice(over if self._resume is None else f"{over}; {_LATE}")))
+        if budget_s is None:
+            return self._answer(self._scan(message, state))
+        outputs = self._answer_by(self._scan(message, state), until_s=started_s + budget_s)
+        if self._clock() - started_s > budget_s:
+            outputs.append(("raw_path", Notice(f"deadline: answered in {(self._clock() - started_s) * 1e3:.0f} ms, "
+                                               f"over the {budget_s * 1e3:.0f} ms budget")))
         return outputs
 
-    def _answer(self, message: Ellipsoids, state: RobotState, *, late: Callable[[], bool]) -> Outputs:
+    def _scan(self, message: Ellipsoids, state: RobotState) -> _Scan:
         goal_base = state.goals_reached
         if goal_base >= len(self.config.goals):
             raise StageInputError("every goal is already reached")
@@ -319,44 +414,110 @@ class PlannerStage:
         sensed = ellipses_from_msgs(message.ellipsoids)
         stack = EllipseStack.of(sensed)
         free = free_start_scales(stack, start=position, inflation_m=config.inflation_m)
-        ellipses = scaled(sensed, free)
         relief = np.minimum(free, relieved_scales(stack, start=position, within_m=1.0 / config.max_curvature,
                                                   inflation_m=config.inflation_m, keep_out_m=config.keep_out_m))
-        relieved = scaled(sensed, relief) if np.any(relief < free) else None
+        return _Scan(message=message, goal_base=goal_base, position=position, heading_rad=state.pose.theta_rad,
+                     goals=goals, ellipses=scaled(sensed, free),
+                     relieved=scaled(sensed, relief) if np.any(relief < free) else None)
 
-        # Plan, check and publish against the same ellipses: the smoother verifies against these.
-        used = ellipses
-        points: FloatArray | None = None
-        if self.plan is not None and self.plan_goal_base == goal_base:
-            used = relieved if self.plan_relieved and relieved is not None else ellipses
-            points = self._still_valid(position=position, heading_rad=state.pose.theta_rad, goals=goals,
-                                       ellipses=used)
-        status, reason = "ok", ""
-        if points is None and self.plan is not None and self.plan_goal_base == goal_base:
-            repaired = self._repair(position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=used,
-                                    groups=np.array([e.group for e in message.ellipsoids]),
-                                    clusters=np.array([e.cluster_id for e in message.ellipsoids]))
+    def _answer(self, scan: _Scan) -> Outputs:
+        """The scan's answer, planned in the foreground: the current plan if it holds, else its repair or a replan."""
+        kept = self._kept(scan)
+        if kept is not None:
+            return self._publish(scan, *kept)
+        made = self._make(scan, self._held(scan.goal_base), late=lambda: False)
+        self._adopt(made, scan)
+        return self._publish(scan, made.points, made.used, reason=made.reason)
+
+    def _answer_by(self, scan: _Scan, *, until_s: float) -> Outputs:
+        """The scan's answer by clock time `until_s`: the current plan if it holds (a replan that finished
+        adopted first); else a repair or replan in the background, waited for until then; else the
+        current plan if it holds for the goals before one was reached, else no_path while replanning."""
+        collected = self._collect()
+        kept = self._kept(scan, earlier_goals=True)
+        while kept is None or self.plan_goal_base != scan.goal_base:
+            if self._replan_job is None:
+                if collected is not None and collected.scan is scan:  # made from this scan, and it does not hold
+                    return self._publish(scan, None, collected.made.used,
+                                         reason=collected.made.reason or "no replan verified")
+                self._replan_job = _Replan(scan, partial(self._make, scan, self._held(scan.goal_base)))
+            if not self._replan_job.done.wait(max(0.0, until_s - self._clock())):
+                if kept is not None:
+                    return self._publish(scan, *kept)
+                if self._verdict:  # the last replan's verdict stands while the next one runs
+                    return [*self._publish(scan, None, scan.ellipses, reason=self._verdict),
+                            ("raw_path", Notice(f"{self._verdict}; {_REPLANNING}"))]
+                return [*self._publish(scan, None, scan.ellipses, reason=_REPLANNING, replanning=True),
+                        ("raw_path", Notice(_REPLANNING))]
+            collected = self._collect()
+            kept = self._kept(scan, earlier_goals=True)
+        return self._publish(scan, *kept)
+
+    def _collect(self) -> _Replan | None:
+        """The background replan, if it finished (not called off), its plan adopted; its error raised."""
+        job = self._replan_job
+        if job is None or not job.done.is_set():
+            return None
+        self._replan_job = None
+        if job.error is not None:
+            raise job.error
+        if job.called_off.is_set():
+            return None
+        self._adopt(job.made, job.scan)
+        self._verdict = job.made.reason
+        return job
+
+    def _held(self, goal_base: int) -> tuple[FloatArray, int, bool] | None:
+        """The current plan, the margin it was repaired at and whether it is relieved, if made for `goal_base`."""
+        if self.plan is None or self.plan_goal_base != goal_base:
+            return None
+        return self.plan, self.plan_margin, self.plan_relieved
+
+    def _kept(self, scan: _Scan, *, earlier_goals: bool = False) -> tuple[FloatArray, list[Ellipse]] | None:
+        """The current plan trimmed to the robot and verified against the scan's ellipses (`_still_valid`),
+        and those ellipses; None when it does not hold, or was made for other goals — with `earlier_goals`,
+        for fewer reached than the scan's (it runs through the goals ahead too)."""
+        if self.plan is None or not (self.plan_goal_base == scan.goal_base
+                                     or earlier_goals and self.plan_goal_base < scan.goal_base):
+            return None
+        used = scan.relieved if self.plan_relieved and scan.relieved is not None else scan.ellipses
+        points = self._still_valid(self.plan, position=scan.position, heading_rad=scan.heading_rad, goals=scan.goals,
+                                   ellipses=used)
+        return None if points is None else (points, used)
+
+    def _make(self, scan: _Scan, held: tuple[FloatArray, int, bool] | None, *, late: Callable[[], bool]) -> _Made:
+        """A plan from `scan` when the current one (`held`, if made for its goals) does not hold: its local
+        repair (`_repair`), else a replan (`_replan`), which `late()` calls off. Reads `scan`, `held` and
+        the config's settings only, so it runs as well on a worker thread."""
+        if held is not None:
+            plan, margin, relieved = held
+            used = scan.relieved if relieved and scan.relieved is not None else scan.ellipses
+            repaired = self._repair(plan, margin=margin, position=scan.position, heading_rad=scan.heading_rad,
+                                    goals=scan.goals, ellipses=used,
+                                    groups=np.array([e.group for e in scan.message.ellipsoids]),
+                                    clusters=np.array([e.cluster_id for e in scan.message.ellipsoids]))
             if repaired is not None:
-                points, self.plan_margin = repaired
-                self.plan_id += 1
-                self.plan = points
-        if points is not None:
-            self._resume = None
+                return _Made(repaired[0], scan.goal_base, relieved, repaired[1], used)
+        plan, used, relieved = self._replan(position=scan.position, heading_rad=scan.heading_rad, goals=scan.goals,
+                                            ellipses=scan.ellipses, relieved=scan.relieved, late=late)
+        return _Made(plan.points if plan.status == "ok" else None, scan.goal_base, relieved, 0, used,
+                     reason=plan.reason)
+
+    def _adopt(self, made: _Made, scan: _Scan) -> None:
+        """`made` becomes the current plan, under a new id (no path: none)."""
+        self.plan_id += 1
+        if made.points is None:
+            logger.info("no path from (%.2f, %.2f): %s", *scan.position, made.reason)
+            self.plan = None
         else:
-            resume = self._resume if self._resume is not None and self._resume[0] == goal_base else (goal_base, 0)
-            plan, used, relief_used, resume_at = self._replan(
-                position=position, heading_rad=state.pose.theta_rad, goals=goals, ellipses=ellipses,
-                relieved=relieved, late=late, first=resume[1])
-            self._resume = None if resume_at is None else (goal_base, resume_at)
-            self.plan_id += 1
-            if plan.status == "ok":
-                self.plan, self.plan_goal_base, self.plan_relieved = plan.points, goal_base, relief_used
-                self.plan_margin = 0
-                points = plan.points
-            else:
-                logger.info("no path from (%.2f, %.2f): %s", *position, plan.reason)
-                self.plan = None
-                status, reason, points = "no_path", plan.reason, np.zeros((0, 2))
+            self.plan, self.plan_goal_base = made.points, made.goal_base
+            self.plan_relieved, self.plan_margin = made.relieved, made.margin
+
+    def _publish(self, scan: _Scan, points: FloatArray | None, used: list[Ellipse], *, reason: str = "",
+                 replanning: bool = False) -> Outputs:
+        """The scan's RawPath: `points` (None: no_path, with `reason`, and whether it is `replanning`), and
+        the ellipses they were checked against."""
+        message = scan.message
         wire = [
             ellipse_to_msg(ellipse, group=msg.group, cluster_id=msg.cluster_id)
             for ellipse, msg in zip(used, message.ellipsoids)
@@ -364,12 +525,13 @@ class PlannerStage:
         out = RawPath(
             header=answer_header(scan_header=message.header, seq=self._seq),
             scan_seq=message.scan_seq,
-            status=status,
-            goal_index=goal_base,
-            points=[(float(x), float(y)) for x, y in points],
+            status="ok" if points is not None else "no_path",
+            goal_index=scan.goal_base,
+            points=[] if points is None else [(float(x), float(y)) for x, y in points],
             ellipsoids=wire,
             plan_id=self.plan_id,
-            reason=reason,
+            reason="" if points is not None else reason,
+            replanning=replanning,
         )
         self._seq += 1
         return [("raw_path", out)]
@@ -387,12 +549,12 @@ class PlannerStage:
         return (config.refine.level, config.refine.curvature_factor), config.repairs[-1]
 
     def _repair(
-        self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
-        groups: FloatArray, clusters: FloatArray,
+        self, plan: FloatArray, *, margin: int, position: FloatArray, heading_rad: float, goals: FloatArray,
+        ellipses: list[Ellipse], groups: FloatArray, clusters: FloatArray,
     ) -> tuple[FloatArray, int] | None:
-        """The current plan, no longer valid, re-optimised from the robot's pose as the first iterate of
-        the refinement, and the margin it was made at; None unless that is a local change whose smoothed
-        curve verifies.
+        """`plan`, the current plan (last repaired at `_repair_margins()[margin]`), no longer valid,
+        re-optimised from the robot's pose as the first iterate of the refinement, and the margin it was
+        made at; None unless that is a local change whose smoothed curve verifies.
 
         New obstacles (or a grown cover) usually only nudge the plan, and a warm start from it needs a
         couple of convex solves where a fresh plan searches routes and tries every margin of the repair
@@ -411,8 +573,7 @@ class PlannerStage:
         solves each on field-25, about 90 ms).
         """
         config = self.config
-        assert self.plan is not None
-        trimmed, off_m = trim_to_robot(self.plan, position=position, heading_rad=heading_rad)
+        trimmed, off_m = trim_to_robot(plan, position=position, heading_rad=heading_rad)
         if off_m > config.max_cross_track_m or len(trimmed) < 3:
             return None
         ahead = np.vstack([position, trimmed[1:]])
@@ -442,7 +603,7 @@ class PlannerStage:
             rest = ahead[:0]
         longest_m = polyline_length(ahead) + config.repair_slack_m
         margins = self._repair_margins()
-        for margin in range(self.plan_margin, len(margins)):
+        for margin in range(margin, len(margins)):
             level, factor = margins[margin]
             try:
                 refined = refine(legs=legs, ellipses=ellipses, bounds_min=config.bounds_min,
@@ -461,24 +622,23 @@ class PlannerStage:
                 return points, margin
         return None
 
-    def _still_valid(self, *, position: FloatArray, heading_rad: float, goals: FloatArray,
+    def _still_valid(self, plan: FloatArray, *, position: FloatArray, heading_rad: float, goals: FloatArray,
                      ellipses: list[Ellipse]) -> FloatArray | None:
-        """The current plan trimmed to the robot, if it is still clear and still smooths; else None.
+        """`plan` (the current one) trimmed to the robot, if it is still clear and still smooths; else None.
 
         A suffix's clamped spline starts with a different curvature from the full plan's curve at the
         same place, so the cut moves back (2, 4, 8, … vertices, down to the whole plan, which verified
         when it was made) until the smoothed curve verifies. Every candidate is checked against the
         newest ellipses, so a plan that a new obstacle invalidates is never re-published.
         """
-        assert self.plan is not None
         config = self.config
-        trimmed, off_m = trim_to_robot(self.plan, position=position, heading_rad=heading_rad)
+        trimmed, off_m = trim_to_robot(plan, position=position, heading_rad=heading_rad)
         if off_m > config.max_cross_track_m or len(intersected(np.vstack([position, trimmed]), ellipses)):
             return None
-        cut = len(self.plan) - len(trimmed)
+        cut = len(plan) - len(trimmed)
         back = 0
         while True:
-            candidate = self.plan[max(0, cut - back):]
+            candidate = plan[max(0, cut - back):]
             if len(candidate) >= 4:
                 if self._smooth(candidate, goals=goals, ellipses=ellipses).verification.ok:
                     return candidate
@@ -488,18 +648,17 @@ class PlannerStage:
 
     def _replan(
         self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
-        relieved: list[Ellipse] | None, late: Callable[[], bool], first: int,
-    ) -> tuple[PathPlan, list[Ellipse], bool, int | None]:
-        """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones;
-        and, when `late()` cut it short before anything verified, the attempt to resume at on the next input.
+        relieved: list[Ellipse] | None, late: Callable[[], bool],
+    ) -> tuple[PathPlan, list[Ellipse], bool]:
+        """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones.
 
         The full margin first, re-optimised with the repairs' wider margins while the smoothed curve
         fails. A car that grown covers have boxed in (`boxed_in`) gets no curve verified at any of
         those margins, and trying them all costs seconds: it plans against the `relieved` ellipses
         (the margin near it given up down to the hard floor) first. Whichever comes first, the other
         is tried when it does not verify; with neither verified, the full-margin plan is returned —
-        or `no_path`, when the car is boxed in even with the margin near it at the hard floor. The
-        attempts of both are numbered in that order, and the search starts at attempt `first`.
+        or `no_path`, when the car is boxed in even with the margin near it at the hard floor. Once
+        `late()` (the replan was called off), it stops before its next attempt, with `no_path`.
         """
         config = self.config
         options = [(ellipses, config.repairs, False)]
@@ -509,37 +668,28 @@ class PlannerStage:
             option = (relieved, config.repairs[-1:], True)
             options = [option, *options] if relief_first else [*options, option]
         fallback: tuple[PathPlan, list[Ellipse], bool] | None = None
-        offset, attempts = 0, sum(1 + len(repairs) for _, repairs, _ in options)
-        first = first if first < attempts else 0  # every attempt failed on earlier inputs: start again
         for used, repairs, relief in options:
-            ladder = margin_ladder(config.refine, repairs)
-            offset, skip = offset + len(ladder), first - offset
-            if skip >= len(ladder):
-                continue
             attempted = plan_within(
                 start=position, heading_rad=heading_rad, goals=goals, ellipses=used,
                 bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
-                ladder=ladder, late=late, first=max(0, skip),
+                ladder=margin_ladder(config.refine, repairs), late=late,
                 smooth_fn=lambda points, used=used: self._smooth(points, goals=goals, ellipses=used),
             )
             if attempted.smoothed is not None and attempted.smoothed.verification.ok:
                 if relief:
                     logger.info("boxed in at (%.2f, %.2f): planned with the margin near the robot relieved "
                                 "to the hard floor", *position)
-                return attempted.plan, used, relief, None
-            if attempted.resume_at is not None:
-                resume_at = offset - len(ladder) + attempted.resume_at
-                return PathPlan("no_path", np.zeros((0, 2)), reason=_LATE), used, relief, resume_at
+                return attempted.plan, used, relief
+            if late():
+                return PathPlan("no_path", np.zeros((0, 2)), reason="replan called off"), used, relief
             if not relief:
-                fallback = (attempted.plan, used, relief)
-            if late() and offset < attempts:
-                return PathPlan("no_path", np.zeros((0, 2)), reason=_LATE), used, relief, offset
+                plan = attempted.plan
+                fallback = (replace(plan, reason="no replan verified") if plan.status == "ok" else plan, used, relief)
         floor = relieved if relieved is not None else ellipses
         if boxed_in(EllipseStack.of(floor), start=position, heading_rad=heading_rad,
                     max_curvature=config.max_curvature):
             # Nothing verified, and every turn crosses even the hard floor: the car, which only drives
             # forwards, cannot leave. Say so, rather than publish a curve the smoother must reject.
-            return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None, None
-        if fallback is None:  # resumed past the full-margin option: its plan is not at hand
-            return PathPlan("no_path", np.zeros((0, 2)), reason="no replan verified"), ellipses, False, None
-        return (*fallback, None)
+            return PathPlan("no_path", np.zeros((0, 2)), reason=_BOXED_IN), floor, relieved is not None
+        assert fallback is not None  # the full-margin option always runs
+        return fallback

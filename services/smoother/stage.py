@@ -83,7 +83,7 @@ class SmootherStage:
         if message.status == "no_path":
             self._seq += 1
             return [("smooth_path", SmoothPath(status="no_path", points=[], max_curvature=0.0, min_level=0.0,
-                                               reason=message.reason, **common))]
+                                               reason=message.reason, replanning=message.replanning, **common))]
         if message.goal_index >= len(config.goals):
             raise StageInputError(f"goal_index {message.goal_index} but the scenario has {len(config.goals)} goals")
         control = np.asarray(message.points, dtype=float).reshape(-1, 2)

@@ -4,6 +4,7 @@ boxed-in car out inside its margin but never past the hard floor."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 
 from schemas.messages import Ellipsoids, Goals, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
-from services.contract import StageInputError
+from services.contract import Notice, StageInputError
 from services.convert import ellipse_to_msg, ellipses_from_msgs
 from services.drive.guard import PathGuard
 from services.geometry import Ellipse, EllipseStack, keep_out_scales
@@ -207,57 +208,100 @@ def test_goals_outside_the_map_are_refused_and_the_old_ones_stay():
     assert np.array_equal(planner.config.goals, SCENARIO.goals_array)
 
 
-def _late_planner(scenario) -> PlannerStage:
-    """A planner whose budget every answer overruns: a nanosecond."""
+def _budget_planner(scenario, budget_s: float = 1e-9) -> PlannerStage:
+    """A planner with a deadline; by default a nanosecond, which no replan meets."""
     from dataclasses import replace
 
     from services.planner.stage import PlannerConfig
 
-    return PlannerStage(config=replace(PlannerConfig.from_scenario(scenario), budget_s=1e-9))
+    return PlannerStage(config=replace(PlannerConfig.from_scenario(scenario), budget_s=budget_s))
 
 
-def test_an_answer_past_the_deadline_is_still_a_verified_one_and_says_so(scenarios_dir):
-    """field-60's boxed-in pose with a budget every answer overruns: the first attempt still runs (no
-    deadline leaves the car without one), the plan it publishes verifies downstream, and the notice on
-    the status says the answer was late."""
-    from services.contract import Notice
+def _scan(planner: PlannerStage, robot: RobotState, sensed: Ellipsoids, seq: int) -> list:
+    """The planner's outputs for scan `seq` of the robot at `robot`'s pose seeing `sensed`."""
+    planner.process(topic="state", message=robot.model_copy(update={"header": robot.header.model_copy(update={"seq": seq})}),
+                    now_s=0.0)
+    return planner.process(topic="ellipsoids", message=sensed.model_copy(update={"scan_seq": seq}), now_s=0.0)
 
+
+def _replan_done(planner: PlannerStage, *, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while planner.replanning:
+        assert time.monotonic() < deadline, "the background replan did not end"
+        time.sleep(0.01)
+
+
+def _boxed_in_field60(scenarios_dir):
     scenario = load_scenario(scenarios_dir / "field-60.json")
     doc = json.loads((Path(__file__).parents[1] / "data" / "field60-boxed-in.json").read_text())
-    robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
-    planner = _late_planner(scenario)
-    planner.process(topic="state", message=robot, now_s=0.0)
-    (topic, raw), (notice_topic, notice) = planner.process(topic="ellipsoids", message=sensed, now_s=0.0)
-    assert topic == notice_topic == "raw_path" and isinstance(notice, Notice)
-    assert notice.reason.startswith("deadline: answered in") and "over the 0 ms budget" in notice.reason
-    assert raw.status == "ok"
-    (_, curve), = SmootherStage.from_scenario(scenario).process(topic="raw_path", message=raw, now_s=0.0)
+    return scenario, RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
+
+
+def test_with_a_budget_a_replan_goes_on_in_the_background_and_a_later_scan_adopts_it_verified(scenarios_dir):
+    """field-60's boxed-in pose, with a budget no replan meets: the scan is answered while the replan
+    still runs, with no_path and the reason (never an unverified plan), which the status says too; the
+    next scan, once the replan is done, publishes its plan under a new id, re-verified against that
+    scan's ellipses, and the smoother and the sim's guard accept it."""
+    scenario, robot, sensed = _boxed_in_field60(scenarios_dir)
+    planner = _budget_planner(scenario)
+    (topic, raw), *notices = _scan(planner, robot, sensed, 0)
+    assert planner.replanning  # answered before the replan ended
+    assert topic == "raw_path" and raw.status == "no_path" and raw.points == [] and raw.replanning
+    assert raw.reason.startswith("replanning: no verified path for this scan within the budget")
+    assert any(isinstance(notice, Notice) and notice.reason == raw.reason for _, notice in notices)
+    _replan_done(planner)
+    (_, raw2), *_ = _scan(planner, robot, sensed, 1)
+    assert raw2.status == "ok" and not raw2.replanning and raw2.plan_id == raw.plan_id + 1 and not planner.replanning
+    (_, curve), = SmootherStage.from_scenario(scenario).process(topic="raw_path", message=raw2, now_s=0.0)
     assert curve.status == "ok" and curve.max_curvature <= planner.config.max_curvature
     guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m)
     guard.know(sensed)
     assert guard.check(curve.points, start=np.array([robot.pose.x_m, robot.pose.y_m])) is None
+    (_, raw3), *_ = _scan(planner, robot, sensed, 2)  # kept: the same plan, no new replan
+    assert raw3.points == raw2.points and raw3.plan_id == raw2.plan_id and not planner.replanning
 
 
-def test_a_replan_the_deadline_cuts_publishes_no_unverified_path_and_goes_on_where_it_stopped():
-    """The unseen field's pocket, where no attempt verifies: with a budget every attempt overruns, each
-    scan tries the next attempt of the margin ladder, answers no_path with the deadline's reason (never
-    the unverified plan) until the ladder is done, and then says the car is boxed in, as without a deadline."""
-    from services.contract import Notice
+def test_a_replan_within_the_budget_answers_its_own_scan_as_without_a_deadline(scenarios_dir):
+    """With a budget the replan meets, the scan waits for it: the same plan as a lockstep planner's."""
+    scenario, robot, sensed = _boxed_in_field60(scenarios_dir)
+    (_, lockstep), = _scan(PlannerStage.from_scenario(scenario), robot, sensed, 0)
+    (_, raw), = _scan(_budget_planner(scenario, budget_s=60.0), robot, sensed, 0)
+    assert raw.status == lockstep.status == "ok" and raw.points == lockstep.points
 
+
+def test_a_background_replan_that_finds_no_path_says_why_and_never_publishes_a_path():
+    """The unseen field's pocket, where nothing verifies and every turn crosses even the hard floor:
+    with a budget no replan meets, the first scan answers no_path while replanning (the car waits), and
+    once that replan has ended, the next answers no_path with its verdict (the car may back out) and
+    starts the next replan from its own inputs; with a budget it meets, the verdict at once, as
+    without a deadline."""
     doc = json.loads((Path(__file__).parents[1] / "data" / "unseen60-boxed-in.json").read_text())
     scenario = parse_scenario(json.dumps(doc["scenario"]), source="unseen60-boxed-in")
     robot, sensed = RobotState.model_validate(doc["state"]), Ellipsoids.model_validate(doc["ellipsoids"])
-    planner = _late_planner(scenario)
-    resumed = []
-    for seq in range(8):
-        state = robot.model_copy(update={"header": robot.header.model_copy(update={"seq": seq})})
-        planner.process(topic="state", message=state, now_s=0.0)
-        (_, raw), (_, notice) = planner.process(topic="ellipsoids", message=sensed.model_copy(update={"scan_seq": seq}),
-                                                now_s=0.0)
-        assert isinstance(notice, Notice) and raw.status == "no_path" and raw.points == []
-        if raw.reason.startswith("boxed in"):
-            break
-        assert raw.reason.startswith("deadline: no verified path") and "the replan goes on" in notice.reason
-        resumed.append(planner._resume[1])
-    assert raw.reason.startswith("boxed in") and planner._resume is None
-    assert resumed == sorted(resumed) and len(set(resumed)) == len(resumed) >= 2  # every scan a later attempt
+    planner = _budget_planner(scenario)
+    (_, raw), *_ = _scan(planner, robot, sensed, 0)
+    assert raw.status == "no_path" and raw.reason.startswith("replanning:") and raw.replanning
+    _replan_done(planner)
+    (_, raw), (_, notice), *_ = _scan(planner, robot, sensed, 1)
+    assert raw.status == "no_path" and raw.points == [] and planner.plan is None
+    assert raw.reason.startswith("boxed in") and not raw.replanning and "; replanning:" in notice.reason
+    assert planner.replanning  # the next one, from this scan
+    planner.stop(now_s=0.0)
+    (_, raw), = _scan(_budget_planner(scenario, budget_s=60.0), robot, sensed, 0)
+    assert raw.status == "no_path" and raw.reason.startswith("boxed in")
+
+
+def test_new_goals_call_a_background_replan_off_and_stop_leaves_no_replan_running():
+    """What a replan for the old goals makes is never adopted; `stop` waits for the running replan."""
+    planner = _budget_planner(SCENARIO)
+    planner.process(topic="state", message=state(0), now_s=0.0)
+    (_, raw), *_ = planner.process(topic="ellipsoids", message=_ellipsoids_with(0, ((4.0, 5.2), 1.0)), now_s=0.0)
+    assert raw.status == "no_path" and raw.reason.startswith("replanning:")
+    planner.process(topic="goals", message=Goals(header=Header(stamp_s=0.0, seq=0), goals=[(-4.0, 2.0)]), now_s=0.0)
+    _replan_done(planner)
+    planner.process(topic="state", message=state(1), now_s=0.0)
+    (_, raw), *_ = planner.process(topic="ellipsoids", message=_ellipsoids_with(1, ((4.0, 5.2), 1.0)), now_s=0.0)
+    assert raw.status == "no_path" and planner.plan is None and raw.plan_id == 0  # the old replan was dropped
+    running = planner._replan_job  # the replan for the new goals
+    planner.stop(now_s=0.0)
+    assert not planner.replanning and not running._thread.is_alive()

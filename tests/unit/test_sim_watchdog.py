@@ -277,3 +277,23 @@ def test_a_path_that_starts_against_the_heading_is_not_driven():
     core.sense()
     reason = core.accept(path(core, straight(0.0, -3.0)))
     assert reason == "the path starts against the car's heading" and core.path is None
+
+
+def test_a_no_path_while_the_planner_replans_is_no_verdict():
+    """The planner's no_path marked `replanning` (its replan still runs in the background): the car goes
+    on as if the answer were still to come — on its path while it has one, and at rest without one it
+    starts no back-out and does not give up."""
+    core = SimCore(scenario=open_field(), config=SimConfig(stale_after_s=100.0))
+    core.sense()
+    core.accept(path(core, straight()))
+    drive(core, 100)  # under way: tracks to back out along
+    core.sense()
+    replanning = no_path(core).model_copy(update={"reason": "replanning: ...", "replanning": True})
+    assert core.accept(replanning) is None and core.path is not None and core.no_path_since_s is None
+    assert min(drive(core, 20)) > 0.5
+    core.know(grown(center=(core.state.x_m + 4.0, 0.0), radius=1.5, scan_seq=core.scan_seq))  # the path is blocked
+    until_rest(core)
+    core.sense()
+    core.accept(no_path(core).model_copy(update={"reason": "replanning: ...", "replanning": True}))
+    drive(core, round(2 * core.config.no_path_patience_s / core.config.dt_s))
+    assert not core.backing_out and core.outcome is None and core.state.speed_mps == 0.0
