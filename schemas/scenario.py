@@ -608,9 +608,14 @@ class Scenario(_Frozen):
     def keep_out_m(self) -> float:
         """Distance from a true obstacle that the footprint centre never goes below: half the footprint's
         diagonal plus half the safety distance, so the footprint, in any heading, stays at least half the
-        safety distance clear (the run's hard floor; plans keep the full `inflation_m` wherever they can).
+        safety distance clear (the run's hard floor; plans keep the full `inflation_m` wherever they can);
+        but never more than `inflation_m`. A car long for its safety distance (Nav2's depot robot, 0.3 ×
+        0.6 m with 0.3 m: 0.485 m against 0.45) would otherwise have its own fully clear plans refused by
+        the guard; its full margin still keeps its footprint clear in any heading (by d_r − the
+        diagonal's excess over the half-width, 0.115 m there).
         """
-        return math.hypot(self.robot.length, self.robot.width) / 2.0 + self.robot.safety_distance / 2.0
+        return min(math.hypot(self.robot.length, self.robot.width) / 2.0 + self.robot.safety_distance / 2.0,
+                   self.inflation_m)
 
     @property
     def max_curvature(self) -> float:
