@@ -100,6 +100,7 @@ class _Subproblem:
     gx: FloatArray  # (n, slots) half-planes gx·x + gy·y ≥ h
     gy: FloatArray
     h: FloatArray
+    within: np.ndarray  # (n, slots) bool: the slots holding an ellipse in reach (the others are 0 ≥ −1)
     center: FloatArray  # (n, 2) trust-region centre (the current iterate)
     trust_m: float
     curvature_budget: FloatArray  # (n − 2,)
@@ -184,30 +185,41 @@ class _CvxpyPathProblem:
 
 
 class _ClarabelPathProblem:
-    """The same subproblem handed to Clarabel directly, with a sparsity pattern fixed per size.
+    """The same subproblem handed to Clarabel directly, with a sparsity pattern fixed per size and slots.
 
-    Variables x = (x₀, y₀, x₁, y₁, …, slack₁ … slackₙ₋₂, elastic₀ … elasticₙ₋₁); Clarabel solves
+    Variables x = (x₀, y₀, x₁, y₁, …, slack₁ … slackₙ₋₂, elasticᵢ for each point i with a half-plane);
+    Clarabel solves
     min ½xᵀPx + qᵀx subject to
-    b − A x ∈ K. The matrix is assembled once, with explicit zeros wherever a coefficient can change
-    (half-planes, heading, step directions); each iteration only overwrites A's and b's values in
-    place (`DefaultSolver.update`), so the symbolic factorisation is reused and no modelling layer
-    runs per solve. Row blocks, in cone order:
+    b − A x ∈ K. The matrix is assembled once per pattern of half-planes, with explicit zeros wherever
+    a coefficient can change (half-planes, heading, step directions); each iteration with the same
+    pattern only overwrites A's and b's values in place (`DefaultSolver.update`), so the symbolic
+    factorisation is reused and no modelling layer runs per solve. Only the slots that hold an ellipse
+    in reach get a row (`pattern`, in point order): an empty slot is 0 ≥ −1, true
+    whatever the point does, and on a map most slots are empty (on the MovingAI arena, whose walls
+    are metres apart, 80–100 % of them), so leaving them out leaves the optimum as it is and the
+    factorisation smaller. Row blocks, in cone order:
       zero      pinned points (2 per point), heading normal · (z₁ − z₀) = 0
-      nonneg    −heading · (z₁ − z₀) ≤ 0; −g·zᵢ − elasticᵢ ≤ −h per slot; −dᵢ·(zᵢ₊₁ − zᵢ) ≤ −lᵢ;
+      nonneg    −heading · (z₁ − z₀) ≤ 0; −g·zᵢ − elasticᵢ ≤ −h per plane; −dᵢ·(zᵢ₊₁ − zᵢ) ≤ −lᵢ;
                 z ≤ min(c + τ, hi); −z ≤ −max(c − τ, lo); −slack ≤ 0; −elastic ≤ 0
       SOC(3)    (step_m, zᵢ₊₁ − zᵢ) for each step
       SOC(3)    (budgetᵢ + slackᵢ, zᵢ₊₁ − 2zᵢ + zᵢ₋₁) for each interior point
     With `bounded` = k < n the box rows (z ≤ …, −z ≤ …) and the step cones are kept for the first k
     points only: the relaxation that `_ClarabelOnDemand` solves first.
+    `pattern`: the (n, slots) slots given a row; a subproblem whose slots in reach are among them
+    solves here (`holds`), its other rows' slots being empty.
     """
 
     def __init__(
-        self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, *, bounded: int | None = None
+        self, n: int, pattern: np.ndarray, pinned_count: int, step_m: float, slack_weight: float, *,
+        bounded: int | None = None,
     ) -> None:
-        self.n, self.slots, self.pinned_count = n, slots, pinned_count
+        self.n, self.pinned_count, self.pattern = n, pinned_count, pattern
+        planes = np.nonzero(pattern)[0]
+        self.elastic_points = np.unique(planes)  # a point without a half-plane needs no elastic slack
+        e = len(self.elastic_points)
         self.bounded = kb = n if bounded is None else max(1, min(bounded, n))  # points with box rows, step cones
         nz = 2 * n
-        self.size = nz + (n - 2) + n
+        self.size = nz + (n - 2) + e
         rows: list[np.ndarray] = []
         cols: list[np.ndarray] = []
         vals: list[np.ndarray] = []
@@ -229,7 +241,7 @@ class _ClarabelPathProblem:
             return 2 * np.asarray(i) + 1
 
         slack = nz + np.arange(n - 2)
-        elastic = nz + (n - 2) + np.arange(n)
+        elastic = nz + (n - 2) + np.arange(e)
         step = np.arange(n - 1)
         mid = np.arange(1, n - 1)
         k = np.arange(pinned_count)
@@ -240,16 +252,16 @@ class _ClarabelPathProblem:
         zero_rows = self._row
         # Nonnegative cone.
         self.heading_row = block(1, [(np.zeros(4, int), np.array([0, 1, 2, 3]), np.zeros(4))])
-        obstacle_i = np.repeat(np.arange(n), slots)  # row r = i * slots + s
-        self.obstacle_rows = block(n * slots, [(np.arange(n * slots), xs(obstacle_i), np.zeros(n * slots)),
-                                               (np.arange(n * slots), ys(obstacle_i), np.zeros(n * slots)),
-                                               (np.arange(n * slots), elastic[obstacle_i], -np.ones(n * slots))])
+        m = self.planes = len(planes)
+        plane_elastic = elastic[np.searchsorted(self.elastic_points, planes)]
+        self.obstacle_rows = block(m, [(np.arange(m), xs(planes), np.zeros(m)), (np.arange(m), ys(planes), np.zeros(m)),
+                                       (np.arange(m), plane_elastic, -np.ones(m))])
         self.floor_rows = block(n - 1, [(step, xs(step), np.zeros(n - 1)), (step, ys(step), np.zeros(n - 1)),
                                         (step, xs(step + 1), np.zeros(n - 1)), (step, ys(step + 1), np.zeros(n - 1))])
         self.upper_rows = block(2 * kb, [(np.arange(2 * kb), np.arange(2 * kb), np.ones(2 * kb))])
         self.lower_rows = block(2 * kb, [(np.arange(2 * kb), np.arange(2 * kb), -np.ones(2 * kb))])
         self.slack_rows = block(n - 2, [(np.arange(n - 2), slack, -np.ones(n - 2))])
-        self.elastic_rows = block(n, [(np.arange(n), elastic, -np.ones(n))])
+        self.elastic_rows = block(e, [(np.arange(e), elastic, -np.ones(e))])
         nonneg_rows = self._row - zero_rows
         # Second-order cones: step bound, then curvature.
         bounded_step = step[: kb - 1]
@@ -273,11 +285,10 @@ class _ClarabelPathProblem:
         self._A.data = v[self._order]
         self._b = np.zeros(self._row)
         self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
-        self._b[self.obstacle_rows] = 1.0  # unused slots: 0 ≤ 1
         D = sparse.diags([np.ones(2 * (n - 1)), -np.ones(2 * (n - 1))], [2, 0], shape=(2 * (n - 1), nz))
-        P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((2 * n - 2, 2 * n - 2))]).tocsc()
+        P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((n - 2 + e, n - 2 + e))]).tocsc()
         self._P = sparse.triu(P).tocsc()
-        self._q = np.concatenate([np.zeros(nz), np.full(2 * n - 2, slack_weight)])
+        self._q = np.concatenate([np.zeros(nz), np.full(n - 2 + e, slack_weight)])
         self._cones = [
             clarabel.ZeroConeT(zero_rows),
             clarabel.NonnegativeConeT(nonneg_rows),
@@ -292,13 +303,17 @@ class _ClarabelPathProblem:
         self._solver: clarabel.DefaultSolver | None = None
         self._pinned_columns: tuple[int, ...] | None = None
 
+    def holds(self, within: np.ndarray) -> bool:
+        """Whether the slots in reach all have a row here."""
+        return bool(np.all(self.pattern[within]))
+
     def _entry_slice(self, rows: slice) -> np.ndarray:
         """Indices (in entry order) of the entries in a block of rows."""
         r = self._entries[0]
         return np.flatnonzero((r >= rows.start) & (r < rows.stop))
 
     def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
-        n, slots = self.n, self.slots
+        n, m = self.n, self.planes
         v = self._values
         b = self._b
         pinned = np.flatnonzero(data.pinned > 0)
@@ -313,9 +328,9 @@ class _ClarabelPathProblem:
         v[self._entry_slice(self.heading_normal_row)] = [hy, -hx, -hy, hx]  # normal (−hy, hx) · (z₁ − z₀)
         v[self._entry_slice(self.heading_row)] = [hx, hy, -hx, -hy]
         obstacle = self._entry_slice(self.obstacle_rows)
-        v[obstacle[: n * slots]] = -data.gx.reshape(-1)
-        v[obstacle[n * slots : 2 * n * slots]] = -data.gy.reshape(-1)
-        b[self.obstacle_rows] = -data.h.reshape(-1)
+        v[obstacle[:m]] = -data.gx[self.pattern]
+        v[obstacle[m : 2 * m]] = -data.gy[self.pattern]
+        b[self.obstacle_rows] = -data.h[self.pattern]
         floor = self._entry_slice(self.floor_rows)
         d = data.step_direction
         v[floor] = np.concatenate([d[:, 0], d[:, 1], -d[:, 0], -d[:, 1]])
@@ -339,7 +354,9 @@ class _ClarabelPathProblem:
         if solution.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
             raise SolverFailure(f"path subproblem: Clarabel status {solution.status}")
         x = np.asarray(solution.x)
-        return x[: 2 * n].reshape(n, 2), x[2 * n : 3 * n - 2], x[3 * n - 2 :]
+        elastic = np.zeros(n)
+        elastic[self.elastic_points] = x[3 * n - 2 :]
+        return x[: 2 * n].reshape(n, 2), x[2 * n : 3 * n - 2], elastic
 
     def _rebuild_pins(self, pinned: np.ndarray) -> None:
         """Point the pinned rows at the pinned points' columns and set the solver up afresh."""
@@ -367,27 +384,44 @@ class _ClarabelOnDemand:
     200-obstacle fields broke them there in their first solve and were solved twice). An optimum of the
     relaxation that meets them is an optimum of the whole subproblem (it is feasible there, and nothing
     feasible there costs less), so the answer is the same up to the solver's tolerance. Past the lead
-    they are a quarter of the rows and the step cones half of the cones (docs/benchmarks.md has the
-    figure).
+    they are a quarter of the rows (with every slot in reach) and the step cones half of the cones
+    (docs/benchmarks.md has the figure).
+
+    Each is set up for the slots in reach of the subproblem at hand and kept while later subproblems'
+    slots in reach are among them; a slot newly in reach sets it up afresh, for the slots it had as
+    well unless that more than doubles the rows, so that the plans of one size (a closed loop's
+    replans) settle on one set-up rather than setting up each afresh.
     """
 
-    def __init__(self, n: int, slots: int, pinned_count: int, step_m: float, slack_weight: float, lead: int) -> None:
-        self._args = (n, slots, pinned_count, step_m, slack_weight)
+    def __init__(self, n: int, pinned_count: int, step_m: float, slack_weight: float, lead: int) -> None:
+        self._args = (n, pinned_count, step_m, slack_weight)
         self.step_m = step_m
-        self.relaxed = _ClarabelPathProblem(*self._args, bounded=lead)
-        self.full: _ClarabelPathProblem | None = None  # set up when first needed
+        self.lead = lead
+        self.relaxed: _ClarabelPathProblem | None = None  # set up when first needed
+        self.full: _ClarabelPathProblem | None = None
 
     def solve(self, data: _Subproblem) -> tuple[FloatArray, FloatArray, FloatArray]:
         # An iterate with a step at the bound (a path the curvature bound keeps lengthening) meets it again:
         # solved whole at once. (Eight closed loops: 76 of 539 relaxed solves broke a bound without this;
         # with it 22 of 477, and 67 solved whole at once.)
         if _longest_step(data.center) < 0.99 * self.step_m:
+            if self.relaxed is None or not self.relaxed.holds(data.within):
+                self.relaxed = self._set_up(self.relaxed, data.within, bounded=self.lead)
             z, slack, elastic = self.relaxed.solve(data)
             if _within_bounds(z, data, step_m=self.step_m):
                 return z, slack, elastic
-        if self.full is None:
-            self.full = _ClarabelPathProblem(*self._args)
+        if self.full is None or not self.full.holds(data.within):
+            self.full = self._set_up(self.full, data.within, bounded=None)
         return self.full.solve(data)
+
+    def _set_up(self, current: _ClarabelPathProblem | None, within: np.ndarray, *,
+                bounded: int | None) -> _ClarabelPathProblem:
+        if current is not None:
+            union = current.pattern | within
+            if np.count_nonzero(union) <= 2 * np.count_nonzero(within):
+                within = union
+        n, pinned_count, step_m, slack_weight = self._args
+        return _ClarabelPathProblem(n, within, pinned_count, step_m, slack_weight, bounded=bounded)
 
 
 def _longest_step(z: FloatArray) -> float:
@@ -412,7 +446,7 @@ def _problem(
 ) -> _CvxpyPathProblem | _ClarabelOnDemand:
     if backend == "cvxpy":
         return _CvxpyPathProblem(n, slots, step_m, slack_weight, solver)
-    return _ClarabelOnDemand(n, slots, pinned_count, step_m, slack_weight, lead)
+    return _ClarabelOnDemand(n, pinned_count, step_m, slack_weight, lead)
 
 
 def _bucket(n: int) -> int:
@@ -455,14 +489,16 @@ def resample_legs(legs: list[FloatArray], *, n: int) -> tuple[FloatArray, tuple[
 
 def _linearise(
     z: FloatArray, stack: EllipseStack, *, slots: int, level: FloatArray, trust_m: float
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Half-planes nᵀ(A z + b) ≥ levelᵢ at each point for its nearest ellipses (unused slots: 0 ≥ −1)."""
+) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
+    """Half-planes nᵀ(A z + b) ≥ levelᵢ at each point for its nearest ellipses in reach of the trust
+    region, and which slots hold one (the others: 0 ≥ −1)."""
     n = len(z)
     gx = np.zeros((n, slots))
     gy = np.zeros((n, slots))
     h = np.full((n, slots), -1.0)
+    within = np.zeros((n, slots), dtype=bool)
     if len(stack) == 0:
-        return gx, gy, h
+        return gx, gy, h, within
     # Lower bound on the Euclidean distance to each ellipse: centre distance minus largest semi-axis
     # (formed as np.linalg.norm forms it, without its (n, m, 2) differences).
     dx = z[:, 0, None] - stack.centers[None, :, 0]
@@ -474,7 +510,6 @@ def _linearise(
         order = np.take_along_axis(order, np.argsort(np.take_along_axis(near, order, axis=1), axis=1), axis=1)
     else:
         order = np.argsort(near, axis=1)
-    within = np.zeros((n, slots), dtype=bool)
     within[:, :k] = near[np.arange(n)[:, None], order] <= 2.0 * trust_m + 0.5
     A = stack.A[order]  # (n, k, 2, 2)
     b = stack.b[order]  # (n, k, 2)
@@ -484,7 +519,7 @@ def _linearise(
     gx[:, :k], gy[:, :k] = g[..., 0], g[..., 1]
     h[:, :k] = level[:, None] - np.einsum("nki,nki->nk", normal, b)
     gx[~within], gy[~within], h[~within] = 0.0, 0.0, -1.0
-    return gx, gy, h
+    return gx, gy, h, within
 
 
 def _curvature_met(z: FloatArray, kappa: float) -> bool:
@@ -549,7 +584,7 @@ def refine(
     iterations = 0
     slack = np.zeros(n - 2)
     for iterations in range(1, settings.max_iterations + 1):
-        gx, gy, h = _linearise(
+        gx, gy, h, within = _linearise(
             z, stack, slots=settings.slots, level=level, trust_m=settings.trust_region_m
         )
         delta = np.diff(z, axis=0)
@@ -565,6 +600,7 @@ def refine(
             gx=gx,
             gy=gy,
             h=h,
+            within=within,
             center=z,
             trust_m=settings.trust_region_m,
             curvature_budget=kappa * np.minimum(floor[:-1], floor[1:]) ** 2,
