@@ -240,25 +240,6 @@ class OccupancyGrid:
         return [self.to_world(np.array([(c0, j0), (c1, j0), (c1, j1), (c0, j1)], dtype=float) * r)
                 for c0, j0, c1, j1 in out]
 
-    def distance_window(self, rows: slice, cols: slice, *, halo: int) -> FloatArray:
-        """Distance in metres from each cell centre of rows × columns to the nearest blocked cell centre
-        (0 on blocked cells), exact wherever that distance is at most `halo` cells: the distance transform
-        (scipy.ndimage) of the window widened by `halo` on every side.
-        """
-        from scipy import ndimage  # as in `border_cells`
-
-        blocked = self.padded_blocked(slice(rows.start - halo, rows.stop + halo),
-                                      slice(cols.start - halo, cols.stop + halo))
-        # The feature transform (each cell's nearest blocked cell); the distances from it over the window
-        # alone, not its halo: the square root of the same whole number scipy's distances take.
-        nearest = ndimage.distance_transform_edt(~blocked, return_distances=False, return_indices=True)
-        n_rows, n_cols = rows.stop - rows.start, cols.stop - cols.start
-        dy = (nearest[0, halo : halo + n_rows, halo : halo + n_cols]
-              - np.arange(halo, halo + n_rows, dtype=nearest.dtype)[:, None]).astype(float)
-        dx = (nearest[1, halo : halo + n_rows, halo : halo + n_cols]
-              - np.arange(halo, halo + n_cols, dtype=nearest.dtype)[None, :]).astype(float)
-        return np.sqrt(dy * dy + dx * dx) * self.resolution_m
-
 
 def _square_distance(g: FloatArray, centres: FloatArray, half: float) -> FloatArray:
     """Distance from points g to axis-aligned squares of half-side `half` centred at `centres` (broadcast)."""

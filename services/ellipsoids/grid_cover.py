@@ -43,9 +43,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from services.geometry import Ellipse, FloatArray
 from schemas.occupancy import OccupancyGrid
@@ -53,8 +53,10 @@ from schemas.occupancy import OccupancyGrid
 IntArray = NDArray[np.intp]
 Tile = tuple[int, int]  # (tile column, tile row)
 
+# OpenCV's thread pool costs these windows more CPU time than it saves (docs/maps.md): one thread.
+cv2.setNumThreads(1)
+
 _PROOF_MARGIN = 1e-9  # every corner's computed level stays this far below 1 (rounding is < 1e-12)
-_EIGHT = np.ones((3, 3), dtype=bool)
 _GOLDEN_RAD = math.pi * (3.0 - math.sqrt(5.0))  # sunflower samples of a disc
 
 
@@ -189,13 +191,18 @@ class GridCover:
             self.fitted[self._tile_of(made.cells[0])].append(made)
 
     def _window(self, group: list[Tile]) -> DistanceWindow:
-        """The distance transform over a group of tiles and their halo."""
+        """The distance transform over a group of tiles and their halo: the exact Euclidean transform
+        (OpenCV's, Felzenszwalb–Huttenlocher) of the window widened by `reach_cells` on every side, so
+        exact wherever the distance is at most that, and above it elsewhere."""
         ranges = [self.tile_range(t) for t in group]
-        h = self.halo_cells + 1
+        h, k = self.halo_cells + 1, self.reach_cells
         r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
         c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
-        edt = self.grid.distance_window(slice(r0, r1), slice(c0, c1), halo=self.reach_cells)
-        edt -= 0.5 * self.grid.resolution_m
+        free = ~self.grid.padded_blocked(slice(r0 - k, r1 + k), slice(c0 - k, c1 + k))
+        # Cells to the nearest blocked cell's centre (0 on blocked cells), in single precision: each the
+        # rounding of its exact distance, the square root of a whole number.
+        cells = cv2.distanceTransform(free.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[k:-k, k:-k]
+        edt = cells.astype(float) * self.grid.resolution_m - 0.5 * self.grid.resolution_m
         return DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt, 0.0, out=edt).astype(np.float32))
 
     def _pieces_of(self, block: list[Tile]) -> tuple[IntArray, IntArray, IntArray] | None:
@@ -212,9 +219,11 @@ class GridCover:
         mask[border[:, 1] - rows.start, border[:, 0] - cols.start] = True
         # Cells closer than `join_m` are one piece to begin with: a speck beside a wall is split off again
         # only if the wall's ellipse cannot take it within the tolerance.
-        # (k dilations by the 8-neighbourhood are one by a (2k + 1)-square: a separable maximum filter.)
-        near = ndimage.maximum_filter(mask, size=2 * self.join_cells + 1, mode="constant", cval=False)
-        labels, count = ndimage.label(near, structure=_EIGHT)
+        # (k dilations by the 8-neighbourhood are one by a (2k + 1)-square; Wu's labelling, SAUF, numbers
+        # the components in the order a raster scan first meets them.)
+        near = cv2.dilate(mask.view(np.uint8), np.ones((2 * self.join_cells + 1,) * 2, dtype=np.uint8))
+        count, labels = cv2.connectedComponentsWithAlgorithm(near, 8, cv2.CV_32S, cv2.CCL_SAUF)
+        count -= 1  # not the background
         js, is_ = np.nonzero(mask)  # row by row, then column
         piece = labels[js, is_].astype(np.intp) - 1  # every label 1…count holds a border cell: `near` is their dilation
         order = np.argsort(piece, kind="stable")
