@@ -23,7 +23,8 @@ car's own sensor. A forged ellipsoid set (even an empty one) or a forged path ca
 closer to anything it has sensed than the floor, nor off the map.
 
 The hard floor is `Scenario.keep_out_m` (half the footprint's diagonal plus half the safety distance:
-the footprint keeps half the safety distance clear in any heading), not the planner's margins. For the
+the footprint keeps half the safety distance clear in any heading; never above the plan's full margin,
+or the guard would refuse the planner's own clear plans), not the planner's margins. For the
 ellipses, a grown ellipse scaled about its centre by `keep_out_scales` still contains its fit grown by
 `keep_out_m`. The planner keeps the full margin wherever it can and gives it up down to that floor only
 near a car that newly grown covers have boxed in (`services.planner.stage.relieved_scales`). Every fit
