@@ -304,8 +304,9 @@ class _ClarabelPathProblem:
         self._pinned_columns: tuple[int, ...] | None = None
 
     def holds(self, within: np.ndarray) -> bool:
-        """Whether the slots in reach all have a row here."""
-        return bool(np.all(self.pattern[within]))
+        """Whether this is the set-up of exactly these slots in reach (a solve's rows are its own data's
+        alone, so its result does not depend on which subproblems came before)."""
+        return bool(np.array_equal(self.pattern, within))
 
     def _entry_slice(self, rows: slice) -> np.ndarray:
         """Indices (in entry order) of the entries in a block of rows."""
@@ -387,10 +388,10 @@ class _ClarabelOnDemand:
     they are a quarter of the rows (with every slot in reach) and the step cones half of the cones
     (docs/benchmarks.md has the figure).
 
-    Each is set up for the slots in reach of the subproblem at hand and kept while later subproblems'
-    slots in reach are among them; a slot newly in reach sets it up afresh, for the slots it had as
-    well unless that more than doubles the rows, so that the plans of one size (a closed loop's
-    replans) settle on one set-up rather than setting up each afresh.
+    Each is set up for the slots in reach of the subproblem at hand and kept while later subproblems
+    have the same ones. Never for a superset of them: extra empty rows leave the optimum as it is but
+    move the solver's iterates (a closed loop's clearance by 1e-5 m), and a result must not depend on
+    the solves that came before it in the process.
     """
 
     def __init__(self, n: int, pinned_count: int, step_m: float, slack_weight: float, lead: int) -> None:
@@ -406,20 +407,15 @@ class _ClarabelOnDemand:
         # with it 22 of 477, and 67 solved whole at once.)
         if _longest_step(data.center) < 0.99 * self.step_m:
             if self.relaxed is None or not self.relaxed.holds(data.within):
-                self.relaxed = self._set_up(self.relaxed, data.within, bounded=self.lead)
+                self.relaxed = self._set_up(data.within, bounded=self.lead)
             z, slack, elastic = self.relaxed.solve(data)
             if _within_bounds(z, data, step_m=self.step_m):
                 return z, slack, elastic
         if self.full is None or not self.full.holds(data.within):
-            self.full = self._set_up(self.full, data.within, bounded=None)
+            self.full = self._set_up(data.within, bounded=None)
         return self.full.solve(data)
 
-    def _set_up(self, current: _ClarabelPathProblem | None, within: np.ndarray, *,
-                bounded: int | None) -> _ClarabelPathProblem:
-        if current is not None:
-            union = current.pattern | within
-            if np.count_nonzero(union) <= 2 * np.count_nonzero(within):
-                within = union
+    def _set_up(self, within: np.ndarray, *, bounded: int | None) -> _ClarabelPathProblem:
         n, pinned_count, step_m, slack_weight = self._args
         return _ClarabelPathProblem(n, within, pinned_count, step_m, slack_weight, bounded=bounded)
 
