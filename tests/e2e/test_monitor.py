@@ -140,7 +140,7 @@ def test_run_streams_to_a_rerun_server_and_status_watches_through_the_router(tmp
             assert report[name]["alive"], report
         assert report["sim"]["rates_hz"]["scan"] > 0.0
         server.send_signal(signal.SIGINT)  # the server has written everything it received; let it close the file
-        server.wait(timeout=30)
+        server.wait(timeout=90)  # a hang guard: on a loaded machine closing the file took over 30 s
     finally:
         stop_processes(processes, grace_s=10.0)
     run_file = RunFile.read(tmp_path / "run.json")
