@@ -112,15 +112,17 @@ def _status(router_ep: str) -> dict:
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # `rerun --save` writes a stream without one
 def test_run_streams_to_a_rerun_server_and_status_watches_through_the_router(tmp_path):
     """A headless rerun server (`rerun --save`, the binary of rerun-sdk) receives the run over gRPC."""
-    # The server binary itself: the `rerun` script beside the interpreter runs it as a child and, on
-    # SIGINT, exits without passing the signal on, leaving the server running (CI: its file never closed).
+    # The server binary itself (the `rerun` script beside the interpreter runs it as a child and does not
+    # pass signals on), with SIGINT's default restored: a test run started in the background of a shell
+    # inherits SIGINT ignored, and the server would never close its file.
     rerun_bin = Path(rerun_cli.__file__).with_name("rerun")
     router_port, rerun_port = free_ports(2)
     router_ep = f"tcp/127.0.0.1:{router_port}"
     env = {**os.environ, "CI": "1"}  # no analytics from the rerun server either
     with open(tmp_path / "rerun.log", "wb") as log:
         server = subprocess.Popen([str(rerun_bin), "--save", str(tmp_path / "live.rrd"), "--bind", "127.0.0.1",
-                                   "--port", str(rerun_port)], stdout=log, stderr=subprocess.STDOUT, env=env)
+                                   "--port", str(rerun_port)], stdout=log, stderr=subprocess.STDOUT, env=env,
+                                  preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     with open(tmp_path / "router.log", "wb") as log:
         router = subprocess.Popen([sys.executable, "-m", "cvxnav", "router", "--listen", router_ep], stdout=log,
                                   stderr=subprocess.STDOUT)
