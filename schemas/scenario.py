@@ -410,12 +410,15 @@ class PointsObstacle(_Frozen):
 
     @cached_property
     def _solid(self) -> BaseGeometry:
-        geom = shapely.MultiPoint(self.points).convex_hull
+        # GEOS's orientation tests fail on coordinates such as 1e-144 beside 1e-237 (their products
+        # underflow) and return a hull that is not convex; to a nanometre they are 0.
+        geom = shapely.MultiPoint(np.round(_as_points(self.points), 9)).convex_hull
         shapely.prepare(geom)
         return geom
 
     def solid(self) -> BaseGeometry:
-        """The convex hull: a polygon, or a segment / single point when the points are degenerate."""
+        """The convex hull of the points to a nanometre: a polygon, or a segment / single point when the
+        points are degenerate."""
         return self._solid
 
     def distance(self, points: ArrayLike) -> FloatArray:

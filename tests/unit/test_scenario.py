@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 import pytest
 import shapely
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from schemas.scenario import (
@@ -359,6 +359,8 @@ def test_circle_cover_is_tangent_at_edge_midpoints() -> None:
 
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.tuples(st.floats(-50, 50), st.floats(-50, 50)), min_size=1, max_size=12))
+@example([(0.0, 0.0), (0.0, 1.0), (0.0, 1.1562195742834468e-237), (1.0, 0.0), (-3.993801049433862e-144, -1.0)])
+@example([(0.0, 0.0), (0.0, 1.0), (0.0, 1.1562195742834468e-237), (1.0, 0.0), (-3.993801049433862e-144, 0.0)])
 def test_points_cover_contains_every_point_and_the_hull(points: list[tuple[float, float]]) -> None:
     obstacle = PointsObstacle(points=points)
     cover = obstacle.cover_vertices()
