@@ -205,8 +205,8 @@ class _ClarabelPathProblem:
       SOC(3)    (budgetᵢ + slackᵢ, zᵢ₊₁ − 2zᵢ + zᵢ₋₁) for each interior point
     With `bounded` = k < n the box rows (z ≤ …, −z ≤ …) and the step cones are kept for the first k
     points only: the relaxation that `_ClarabelOnDemand` solves first.
-    `pattern`: the (n, slots) slots given a row; a subproblem whose slots in reach are among them
-    solves here (`holds`), its other rows' slots being empty.
+    `pattern`: the (n, slots) slots given a row; a subproblem whose slots in reach are exactly these
+    solves here (`holds`).
     """
 
     def __init__(
