@@ -29,6 +29,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from schemas.wiring import PROCESSES, TOPICS, alive_key, every_key, key, status_key
+from services.shell.zenoh_config import NO_SHARED_MEMORY
 
 ROUTER = "router"
 OPERATOR = "operator"  # the name `cvxnav status` connects with
@@ -183,7 +184,7 @@ def router_config(*, cert_dir: Path, listen: Sequence[str], names: Sequence[str]
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"tls": {
+        "transport": {**NO_SHARED_MEMORY, "link": {"tls": {
             "root_ca_certificate": str(cert_dir / "ca.pem"),
             "listen_certificate": str(cert_dir / f"{ROUTER}.pem"),
             "listen_private_key": str(cert_dir / f"{ROUTER}.key"),
@@ -199,7 +200,7 @@ def client_config(*, cert_dir: Path, name: str, connect: Sequence[str]) -> dict:
         "mode": "client",
         "connect": {"endpoints": list(connect)},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"tls": {
+        "transport": {**NO_SHARED_MEMORY, "link": {"tls": {
             "root_ca_certificate": str(cert_dir / "ca.pem"),
             "connect_certificate": str(cert_dir / f"{name}.pem"),
             "connect_private_key": str(cert_dir / f"{name}.key"),

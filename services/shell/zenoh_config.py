@@ -3,6 +3,13 @@
 Mirrors zenoh-python's ``examples/common/common.py``. When explicit endpoints are given, multicast
 scouting is turned off: the peers find each other through those endpoints, so processes on one
 machine (and tests on loopback) need no router and do not see unrelated sessions on the LAN.
+
+Every config built here (and the run's and the TLS run's documents) has Zenoh's shared-memory
+transport off (``NO_SHARED_MEMORY``): Zenoh 1.x sends a payload over 3 KiB through shared memory when
+both ends share a host, and a process's first such put sets up its pool inside the call — a one-off
+stall of its stage on one scan (6 ms alone, 35–45 ms in a running pipeline; docs/closed-loop.md),
+while cvxnav's messages, kilobytes each, gain nothing from not being copied. A ``--config`` file is
+taken as it is.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ MODES: tuple[Mode, ...] = ("peer", "client", "router")
 # How often a session tries its `connect` endpoints again once a link is lost: Zenoh's default backs off
 # to 4 s, so a client found a restarted router up to 4 s after it was back (and the car stood as long).
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+NO_SHARED_MEMORY = {"shared_memory": {"enabled": False}}  # under "transport"
 
 # Zenoh's link protocols (zenoh/io/zenoh-links): those whose address is host:port, and the rest.
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -87,12 +95,16 @@ def build_zenoh_config(
     config_file: Path | None = None,
     mode: Mode | None = None,
 ) -> zenoh.Config:
-    """Start from ``config_file`` (or Zenoh's defaults, mode ``peer``) and apply the overrides; ``connect``
-    endpoints are retried every second at most (``RECONNECT``).
+    """Start from ``config_file`` (or Zenoh's defaults, mode ``peer``, with shared memory off) and apply the
+    overrides; ``connect`` endpoints are retried every second at most (``RECONNECT``).
 
     ``mode=None`` keeps the file's mode (or Zenoh's default, ``peer``) rather than overriding it.
     """
-    config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
+    if config_file:
+        config = zenoh.Config.from_file(str(config_file))
+    else:
+        config = zenoh.Config()
+        config.insert_json5("transport", json.dumps(NO_SHARED_MEMORY))
     if mode is not None:
         config.insert_json5("mode", json.dumps(mode))
     if connect:
@@ -106,9 +118,10 @@ def build_zenoh_config(
 
 
 def endpoints_config(*, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: Mode = "peer") -> dict:
-    """A whole Zenoh config as a document (for a file a child process reads): these endpoints, no scouting."""
+    """A whole Zenoh config as a document (for a file a child process reads): these endpoints, no scouting,
+    no shared memory."""
     return {"mode": mode, "listen": {"endpoints": list(listen)}, "connect": {"endpoints": list(connect)},
-            "scouting": {"multicast": {"enabled": False}}}
+            "scouting": {"multicast": {"enabled": False}}, "transport": NO_SHARED_MEMORY}
 
 
 def config_from_doc(doc: dict) -> zenoh.Config:
