@@ -400,6 +400,8 @@ class Ros2Bridge:
 
     def take_path(self, message: SmoothPath, *, received_s: float) -> BridgeOutput:
         """The pipeline's answer to a scan: a path to follow (published on /plan), or a reason to brake.
+        The planner's no_path while it replans in the background (``replanning``) is neither: the robot
+        goes on as if the answer were still to come, as the sim does.
 
         A path is held until the guard knows the ellipses of its own scan and of every scan received
         `BridgeConfig.guard_window_s` before now (`_release`)."""
@@ -410,6 +412,8 @@ class Ros2Bridge:
         self.latencies_ms.append(1e3 * (received_s - record.received_s))
         if self.missing or message.scan_seq < self.resume_seq:
             return BridgeOutput()
+        if message.status == "no_path" and message.replanning:
+            return BridgeOutput()  # no verdict yet: the path stands while it is fresh and clear, as for a late answer
         if message.status == "no_path":  # nor is a path held for an older scan followed
             self.held = None
             return BridgeOutput(ros=self._brake(f"no path: {message.reason}", now_s=received_s))

@@ -317,6 +317,31 @@ def test_the_robot_brakes_without_a_fresh_verified_path(bridge) -> None:
                                               received_s=21.0).error
 
 
+def test_a_no_path_while_the_planner_replans_keeps_the_path_and_a_verdict_brakes(bridge) -> None:
+    x, y, yaw = 0.9, -0.2, 0.0
+    points = straight_path(x=x, y=y, yaw=yaw)
+    bridge = heading_to_its_end(bridge, points)
+
+    def command(t_s: float) -> float:
+        (twist,) = decoded(put(bridge, "odom", odometry(x=x, y=y, yaw=yaw, t_s=t_s, speed=0.5), t_s=t_s), "cmd_vel")
+        return twist.linear.x
+
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=10.0)
+    bridge.take_path(answer(bridge, points, scan_seq=0), received_s=10.1)
+    assert command(10.1) > 0.0
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=10.2)
+    pending = SmoothPath(header=Header(stamp_s=10.2, seq=1), scan_seq=1, status="no_path", goal_index=0, points=[],
+                         max_curvature=0.0, min_level=0.0, plan_id=1, reason="replanning past its budget",
+                         replanning=True)
+    assert bridge.take_path(pending, received_s=10.25).error is None
+    assert bridge.path is not None and command(10.3) > 0.0
+    scan_at(bridge, x=x, y=y, yaw=yaw, t_s=10.4)
+    verdict = pending.model_copy(update=dict(header=Header(stamp_s=10.4, seq=2), scan_seq=2, replanning=False,
+                                             reason="the goal is enclosed"))
+    bridge.take_path(verdict, received_s=10.45)
+    assert bridge.path is None and "the goal is enclosed" in bridge.braking_reason and command(10.5) == 0.0
+
+
 def test_a_path_waits_until_the_guard_knows_the_obstacles_of_every_scan_the_robot_has_had_a_while(bridge) -> None:
     """The guard must be current: it knows the ellipses of the path's own scan, and of the newest scan
     received guard_window_s before. Without that wait this path, checked against scan 0's obstacles only,
