@@ -13,7 +13,7 @@ from services.planner.refine import RefineSettings, resample_legs
 from services.planner.route import tangent_route
 from services.planner.route.arcs import Arcs, cuts
 from services.planner.route.cells import DeepCells
-from services.planner.route.frames import Frames
+from services.planner.route.frames import Frames, distance
 from services.planner.route.roots import trig_roots
 from services.planner.route.tangents import pair_tangents
 
@@ -158,6 +158,17 @@ def test_deep_cells_call_blocked_only_segments_the_exact_test_finds_blocked():
     exact = stack.min_segment_levels(p, q) < 1.0 - 1e-9
     assert not np.any(sure & ~exact)
     assert np.sum(sure) > 0.8 * np.sum(exact)  # and it finds most of them
+
+
+def test_deep_cells_first_pass_changes_no_answer():
+    # Every 8th sample first, then all of them for the rest: the answer of reading every sample at once.
+    rng = np.random.default_rng(5)
+    stack = EllipseStack.of(_random_ellipses(rng, 60, extent=20.0, semi=(0.3, 1.5)))
+    deep = DeepCells(stack)
+    p, q = rng.uniform(-1, 21, (3000, 2)), rng.uniform(-1, 21, (3000, 2))
+    q[:500] = p[:500] + rng.uniform(-0.2, 0.2, (500, 2))  # shorter than a stride, down to a point
+    count = np.ceil(distance(q, p) / deep.cell).astype(int) + 2
+    np.testing.assert_array_equal(deep.blocked(p, q), deep._hits(p, q, count, 1))
 
 
 @pytest.mark.parametrize("seed, ratio", [(1, 1.5), (2, 4.0), (3, 12.0)])

@@ -8,6 +8,7 @@ from services.geometry import EllipseStack, FloatArray
 from services.planner.route.frames import distance
 
 _DEEP_CELL = 0.5  # grid cells of the blocked-segment proof, × the median smallest semi-axis
+_FIRST_STRIDE = 8  # samples read in the proof's first pass: every 8th (docs/maps.md)
 
 
 class DeepCells:
@@ -45,18 +46,33 @@ class DeepCells:
         self.deep[ix[k], iy[k]] = True
 
     def blocked(self, p: FloatArray, q: FloatArray) -> FloatArray:
-        """Whether a point of segment p→q, sampled one cell apart, lies in a marked cell."""
-        d = q - p
+        """Whether a point of segment p→q, sampled one cell apart, lies in a marked cell.
+
+        Every `_FIRST_STRIDE`-th sample is read first; only the segments none of those proves blocked
+        have all their samples read. The points are the same either way (sample k is p + k/(n − 1) (q − p)
+        of n, computed alike), so is the answer; a blocked segment crosses the depth of an ellipse for
+        many cells, and most are found in the first pass.
+        """
         count = np.ceil(distance(q, p) / self.cell).astype(int) + 2
-        skip = np.cumsum(count) - count
-        t = np.arange(count.sum()) - np.repeat(skip, count)  # sample k of count, then scaled to [0, 1]
-        t = t * np.repeat(1.0 / (count - 1), count)
+        sure = self._hits(p, q, count, _FIRST_STRIDE)
+        rest = np.flatnonzero(~sure)
+        sure[rest] = self._hits(p[rest], q[rest], count[rest], 1)
+        return sure
+
+    def _hits(self, p: FloatArray, q: FloatArray, count: FloatArray, stride: int) -> FloatArray:
+        """Whether one of samples 0, stride, 2 stride, … (< count) of each segment lies in a marked cell."""
+        if not len(p):
+            return np.zeros(0, dtype=bool)
+        d = q - p
+        taken = (count - 1) // stride + 1
+        skip = np.cumsum(taken) - taken
+        t = (np.arange(taken.sum()) - np.repeat(skip, taken)) * stride  # sample k of count, then scaled to [0, 1]
+        t = t * np.repeat(1.0 / (count - 1), taken)
         # Truncation and clipping put every point off the grid on its unmarked border; the grid is read
         # flat, cell (x, y) at x · rows + y.
         flat = np.zeros(len(t), dtype=int)
         for axis, size in enumerate(self.deep.shape):
             start, step = (p[:, axis] - self.origin[axis]) / self.cell, d[:, axis] / self.cell  # in cells
-            index = (np.repeat(start, count) + t * np.repeat(step, count)).astype(int)
+            index = (np.repeat(start, taken) + t * np.repeat(step, taken)).astype(int)
             flat = flat * size + np.clip(index, 0, size - 1)
-        hit = self.deep.ravel()[flat]
-        return np.logical_or.reduceat(hit, skip) if len(p) else np.zeros(0, dtype=bool)
+        return np.logical_or.reduceat(self.deep.ravel()[flat], skip)

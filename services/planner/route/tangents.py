@@ -25,9 +25,10 @@ def _window_roots(
 
     def g(theta, k):
         c, s = np.cos(theta), np.sin(theta)
-        h = np.sqrt(s11[k] * c * c + 2.0 * s12[k] * c * s + s22[k] * s * s)
-        dh = ((s22[k] - s11[k]) * c * s + s12[k] * (c * c - s * s)) / h
-        return D[k] * np.cos(theta - phi[k]) - 1.0 + sign[k] * h, -D[k] * np.sin(theta - phi[k]) + sign[k] * dh
+        a11, a12, a22, Dk, sk, off = s11[k], s12[k], s22[k], D[k], sign[k], theta - phi[k]  # each gathered once
+        h = np.sqrt(a11 * c * c + 2.0 * a12 * c * s + a22 * s * s)
+        dh = ((a22 - a11) * c * s + a12 * (c * c - s * s)) / h
+        return Dk * np.cos(off) - 1.0 + sk * h, -Dk * np.sin(off) + sk * dh
 
     # Start from the root for a circle of j's radius √(nᵀSn) at the window's middle: Newton then
     # needs about three steps.
