@@ -348,9 +348,9 @@ class _Fits:
 
 def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     """Every piece's Löwner–John ellipse of its smaller bounding rectangle (see the module docstring)."""
-    starts = np.flatnonzero(np.r_[True, piece[1:] != piece[:-1]])
+    starts, ends = _runs(piece[1:] != piece[:-1])
     count = len(starts)
-    n = np.diff(np.r_[starts, len(piece)]).astype(float)
+    n = (ends - starts).astype(float)
     xy = cells + 0.5
     mean = np.add.reduceat(xy, starts, axis=0) / n[:, None]
     d = xy - mean[piece]
@@ -362,13 +362,13 @@ def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     # The first and last cell of each row of each piece: the corners of their cells bound the piece (a
     # cell lies between its row's first and last, inside the rectangle of their corners).
     row = cells[:, 1]
-    first = np.flatnonzero(np.r_[True, (row[1:] != row[:-1]) | (piece[1:] != piece[:-1])])
-    last = np.r_[first[1:] - 1, len(row) - 1]
+    first, after = _runs((row[1:] != row[:-1]) | (piece[1:] != piece[:-1]))
+    last = after - 1
     i0, i1, j = cells[first, 0], cells[last, 0] + 1, row[first]
     corners = np.stack([np.column_stack([i0, j]), np.column_stack([i0, j + 1]),
                         np.column_stack([i1, j]), np.column_stack([i1, j + 1])], axis=1).reshape(-1, 2)
     corner_piece = np.repeat(piece[first], 4)
-    cstarts = np.flatnonzero(np.r_[True, corner_piece[1:] != corner_piece[:-1]])
+    cstarts = 4 * np.searchsorted(first, starts)  # each piece's first row starts a run: 4 corners a run
     cf = corners.astype(float)
     # The rectangle along the principal axes, and along the grid's; the smaller is fitted.
     u, v = direction[corner_piece], np.column_stack([-direction[:, 1], direction[:, 0]])[corner_piece]
@@ -388,6 +388,13 @@ def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     axes[swap] = axes[swap][:, :, ::-1]
     return _Fits(count=count, count_cells=n, mean=mean, direction=direction, corners=corners,
                  corner_piece=corner_piece, centre=centre, semi_axes=math.sqrt(2.0) * half, axes=axes)
+
+
+def _runs(change: NDArray[np.bool_]) -> tuple[IntArray, IntArray]:
+    """Where the runs of a sequence start and end (one past their last): a run starts at 0 and at i + 1
+    wherever `change[i]` (element i + 1 differs from element i), and ends where the next starts."""
+    inner = np.flatnonzero(change) + 1
+    return np.concatenate(([0], inner)), np.concatenate((inner, [len(change) + 1]))
 
 
 def _sides(cells: IntArray, piece: IntArray, fit: _Fits) -> NDArray[np.bool_]:
@@ -417,7 +424,7 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
     # A sample (u, v) of the unit disc, in cells from its window's corner: c + V diag(semi) (u, v) / res,
     # its coefficients formed once per ellipse and repeated to its samples. Inside the box, so inside the
     # window: ≥ 0, and a cast truncates as the floor does.
-    start, row0, col0, width = (boxes[k, column] for column in (4, 5, 6, 7))
+    start, row0, col0, width = boxes[k, 4:8].T
     sa, sb = semi[k, 0] / res, semi[k, 1] / res
     coefficients = np.stack([centre[k, 0] / res - col0, axes[k, 0, 0] * sa, axes[k, 0, 1] * sb,
                              centre[k, 1] / res - row0, axes[k, 1, 0] * sa, axes[k, 1, 1] * sb])
