@@ -199,9 +199,14 @@ class GridCover:
         r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
         c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
         free = ~self.grid.padded_blocked(slice(r0 - k, r1 + k), slice(c0 - k, c1 + k))
-        # Cells to the nearest blocked cell's centre (0 on blocked cells), in single precision: each the
-        # rounding of its exact distance, the square root of a whole number.
+        # Cells to the nearest blocked cell's centre (0 on blocked cells), the square root of a whole
+        # number. OpenCV's single-precision value of it is within one epsilon (relative) of the exact one
+        # but not the same from call to call on the same cells (docs/maps.md); its square is then within
+        # 0.5 of the whole number below 1 200 cells, so the root of the rounded square (single precision:
+        # correctly rounded) is the rounding of the exact distance, the same every time. (Further away a
+        # neighbouring whole number moves the distance by under 1/2 400 of a cell, far above `reach_cells`.)
         cells = cv2.distanceTransform(free.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[k:-k, k:-k]
+        cells = np.sqrt(np.rint(cells * cells))
         edt = cells.astype(float) * self.grid.resolution_m - 0.5 * self.grid.resolution_m
         return DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt, 0.0, out=edt).astype(np.float32))
 
