@@ -240,9 +240,11 @@ class GridCover:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
 
     def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32]):
-        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken.
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken,
+        level by level, proved and made in one batch after the last level (`_accepted`).
         `distance`: the windows' distances, one after another (each piece's box says where its window is)."""
         tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
+        taken: list[tuple] = []  # each level's accepted pieces, as `_accepted` takes them
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
             self.fit_count += fit.count
@@ -251,7 +253,12 @@ class GridCover:
             below = np.bincount(piece, weights=side, minlength=fit.count)
             splittable = (below > 0) & (below < fit.count_cells)
             accept = (excess <= tolerance) | ~splittable
-            yield from self._accepted(fit, p, grown, excess, accept, cells, piece)
+            if len(idx := np.flatnonzero(accept)):
+                on = accept[fit.corner_piece]
+                starts, ends = np.searchsorted(piece, idx), np.searchsorted(piece, idx, side="right")
+                taken.append((fit.centre[idx], fit.axes[idx], fit.semi_axes[idx], p[idx], excess[idx], fit.corners[on],
+                              np.searchsorted(idx, fit.corner_piece[on]),  # ascending: corners are piece by piece
+                              [cells[a:b] for a, b in zip(starts.tolist(), ends.tolist())]))
             # The split pieces' halves: piece 2k + side, renumbered, still by row then column within.
             keep = ~accept[piece]
             halves = 2 * piece[keep] + side[keep].astype(np.intp)
@@ -261,6 +268,13 @@ class GridCover:
             order = np.argsort(halves, kind="stable")
             cells, piece = cells[keep][order], halves[order]
             boxes = boxes[labels // 2]
+        if taken:
+            owners = np.cumsum([0] + [len(level[3]) for level in taken[:-1]])
+            yield from self._accepted(
+                *(np.concatenate([level[k] for level in taken]) for k in range(6)),
+                np.concatenate([level[6] + offset for level, offset in zip(taken, owners)]),
+                [piece_cells for level in taken for piece_cells in level[7]],
+            )
 
     def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
@@ -290,23 +304,20 @@ class GridCover:
             excess[near] = np.maximum(excess[near], edge_and_inner - r)
         return p[take, best], grown[take, best], excess
 
-    def _accepted(self, fit: _Fits, p: FloatArray, grown: FloatArray, excess: FloatArray, accept: np.ndarray,
-                  cells: IntArray, piece: IntArray):
-        """The accepted pieces as world ellipses, each proved to contain its cells (see the module)."""
-        idx = np.flatnonzero(accept)
-        if not len(idx):
-            return
+    def _accepted(self, centre: FloatArray, axes: FloatArray, semi: FloatArray, p: FloatArray, excess: FloatArray,
+                  corners: IntArray, corner_owner: IntArray, cells: list[IntArray]):
+        """The accepted pieces as world ellipses, each proved to contain its cells (see the module): their
+        fits (grid-frame centres, axis directions, semi-axes), growth parameters, excesses, their hulls'
+        corners (in cells; `corner_owner`: each one's piece, ascending) and their cells."""
         res = self.grid.resolution_m
         R = self.grid.rotation
         origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m])
-        centre = fit.centre[idx] @ R.T + origin  # world centres
-        axes = np.einsum("ij,kjl->kil", R, fit.axes[idx])  # world axis directions (columns)
-        semi = fit.semi_axes[idx].copy()
+        centre = centre @ R.T + origin  # world centres
+        axes = np.einsum("ij,kjl->kil", R, axes)  # world axis directions (columns)
+        semi = semi.copy()
         # The hull's corners of each accepted piece, in the world.
-        on = accept[fit.corner_piece]
-        corner_owner = np.searchsorted(idx, fit.corner_piece[on])  # ascending: the corners are piece by piece
-        first_corner = np.searchsorted(corner_owner, np.arange(len(idx)))
-        corners = self.grid.to_world(fit.corners[on] * res)
+        first_corner = np.searchsorted(corner_owner, np.arange(len(centre)))
+        corners = self.grid.to_world(corners * res)
         for _ in range(2):
             A = _shape(axes, semi)
             u = np.einsum("kij,kj->ki", A[corner_owner], corners - centre[corner_owner])
@@ -318,16 +329,12 @@ class GridCover:
         else:
             raise AssertionError("a fitted ellipse does not contain its cells")
         r = self.margin_m
-        pk = p[idx]
-        grown_semi = np.sqrt((1.0 + 1.0 / pk)[:, None] * semi**2 + ((1.0 + pk) * r * r)[:, None])
+        grown_semi = np.sqrt((1.0 + 1.0 / p)[:, None] * semi**2 + ((1.0 + p) * r * r)[:, None])
         grown_A = _shape(axes, grown_semi)
         raw_Ab = np.concatenate([A, -np.einsum("kij,kj->ki", A, centre)[:, :, None]], axis=2)
         grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
-        starts = np.searchsorted(piece, idx)
-        ends = np.searchsorted(piece, idx, side="right")
-        for k in range(len(idx)):
-            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=float(pk[k]), excess_m=float(excess[idx[k]]),
-                            cells=cells[starts[k] : ends[k]])
+        for k, (pk, ek) in enumerate(zip(p.tolist(), excess.tolist())):
+            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=pk, excess_m=ek, cells=cells[k])
 
 
 def _shape(axes: FloatArray, semi: FloatArray) -> FloatArray:
