@@ -377,20 +377,23 @@ def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     first, after = _runs((row[1:] != row[:-1]) | (piece[1:] != piece[:-1]))
     last = after - 1
     i0, i1, j = cells[first, 0], cells[last, 0] + 1, row[first]
-    corners = np.stack([np.column_stack([i0, j]), np.column_stack([i0, j + 1]),
-                        np.column_stack([i1, j]), np.column_stack([i1, j + 1])], axis=1).reshape(-1, 2)
+    corners = np.empty((len(first), 4, 2), dtype=cells.dtype)  # (i0, j), (i0, j + 1), (i1, j), (i1, j + 1)
+    corners[:, :2, 0], corners[:, 2:, 0] = i0[:, None], i1[:, None]
+    corners[:, ::2, 1], corners[:, 1::2, 1] = j[:, None], j[:, None] + 1
+    corners = corners.reshape(-1, 2)
     corner_piece = np.repeat(piece[first], 4)
     cstarts = 4 * np.searchsorted(first, starts)  # each piece's first row starts a run: 4 corners a run
     cf = corners.astype(float)
     # The rectangle along the principal axes, and along the grid's; the smaller is fitted.
-    u, v = direction[corner_piece], np.column_stack([-direction[:, 1], direction[:, 0]])[corner_piece]
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    u, v = direction[corner_piece], normal[corner_piece]
     along = np.column_stack([np.einsum("ij,ij->i", cf, u), np.einsum("ij,ij->i", cf, v)])
     lo_p, hi_p = np.minimum.reduceat(along, cstarts, axis=0), np.maximum.reduceat(along, cstarts, axis=0)
     lo_g, hi_g = np.minimum.reduceat(cf, cstarts, axis=0), np.maximum.reduceat(cf, cstarts, axis=0)
     principal = np.prod(hi_p - lo_p, axis=1) < np.prod(hi_g - lo_g, axis=1) * (1.0 - 1e-9)
     axes = np.zeros((count, 2, 2))
     axes[:, :, 0] = np.where(principal[:, None], direction, [1.0, 0.0])
-    axes[:, :, 1] = np.where(principal[:, None], np.column_stack([-direction[:, 1], direction[:, 0]]), [0.0, 1.0])
+    axes[:, :, 1] = np.where(principal[:, None], normal, [0.0, 1.0])
     lo = np.where(principal[:, None], lo_p, lo_g)
     hi = np.where(principal[:, None], hi_p, hi_g)
     half = 0.5 * res * (hi - lo)
