@@ -199,9 +199,14 @@ class GridCover:
         r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
         c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
         free = ~self.grid.padded_blocked(slice(r0 - k, r1 + k), slice(c0 - k, c1 + k))
-        # Cells to the nearest blocked cell's centre (0 on blocked cells), in single precision: each the
-        # rounding of its exact distance, the square root of a whole number.
+        # Cells to the nearest blocked cell's centre (0 on blocked cells), the square root of a whole
+        # number. OpenCV's single-precision value of it is within one epsilon (relative) of the exact one
+        # but not the same from call to call on the same cells (docs/maps.md); its square is then within
+        # 0.5 of the whole number below 1 200 cells, so the root of the rounded square (single precision:
+        # correctly rounded) is the rounding of the exact distance, the same every time. (Further away a
+        # neighbouring whole number moves the distance by under 1/2 400 of a cell, far above `reach_cells`.)
         cells = cv2.distanceTransform(free.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[k:-k, k:-k]
+        cells = np.sqrt(np.rint(cells * cells))
         edt = cells.astype(float) * self.grid.resolution_m - 0.5 * self.grid.resolution_m
         return DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt, 0.0, out=edt).astype(np.float32))
 
@@ -235,9 +240,11 @@ class GridCover:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
 
     def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32]):
-        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken.
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken,
+        level by level, proved and made in one batch after the last level (`_accepted`).
         `distance`: the windows' distances, one after another (each piece's box says where its window is)."""
         tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
+        taken: list[tuple] = []  # each level's accepted pieces, as `_accepted` takes them
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
             self.fit_count += fit.count
@@ -246,7 +253,12 @@ class GridCover:
             below = np.bincount(piece, weights=side, minlength=fit.count)
             splittable = (below > 0) & (below < fit.count_cells)
             accept = (excess <= tolerance) | ~splittable
-            yield from self._accepted(fit, p, grown, excess, accept, cells, piece)
+            if len(idx := np.flatnonzero(accept)):
+                on = accept[fit.corner_piece]
+                starts, ends = np.searchsorted(piece, idx), np.searchsorted(piece, idx, side="right")
+                taken.append((fit.centre[idx], fit.axes[idx], fit.semi_axes[idx], p[idx], excess[idx], fit.corners[on],
+                              np.searchsorted(idx, fit.corner_piece[on]),  # ascending: corners are piece by piece
+                              [cells[a:b] for a, b in zip(starts.tolist(), ends.tolist())]))
             # The split pieces' halves: piece 2k + side, renumbered, still by row then column within.
             keep = ~accept[piece]
             halves = 2 * piece[keep] + side[keep].astype(np.intp)
@@ -256,6 +268,13 @@ class GridCover:
             order = np.argsort(halves, kind="stable")
             cells, piece = cells[keep][order], halves[order]
             boxes = boxes[labels // 2]
+        if taken:
+            owners = np.cumsum([0] + [len(level[3]) for level in taken[:-1]])
+            yield from self._accepted(
+                *(np.concatenate([level[k] for level in taken]) for k in range(6)),
+                np.concatenate([level[6] + offset for level, offset in zip(taken, owners)]),
+                [piece_cells for level in taken for piece_cells in level[7]],
+            )
 
     def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
@@ -285,23 +304,20 @@ class GridCover:
             excess[near] = np.maximum(excess[near], edge_and_inner - r)
         return p[take, best], grown[take, best], excess
 
-    def _accepted(self, fit: _Fits, p: FloatArray, grown: FloatArray, excess: FloatArray, accept: np.ndarray,
-                  cells: IntArray, piece: IntArray):
-        """The accepted pieces as world ellipses, each proved to contain its cells (see the module)."""
-        idx = np.flatnonzero(accept)
-        if not len(idx):
-            return
+    def _accepted(self, centre: FloatArray, axes: FloatArray, semi: FloatArray, p: FloatArray, excess: FloatArray,
+                  corners: IntArray, corner_owner: IntArray, cells: list[IntArray]):
+        """The accepted pieces as world ellipses, each proved to contain its cells (see the module): their
+        fits (grid-frame centres, axis directions, semi-axes), growth parameters, excesses, their hulls'
+        corners (in cells; `corner_owner`: each one's piece, ascending) and their cells."""
         res = self.grid.resolution_m
         R = self.grid.rotation
         origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m])
-        centre = fit.centre[idx] @ R.T + origin  # world centres
-        axes = np.einsum("ij,kjl->kil", R, fit.axes[idx])  # world axis directions (columns)
-        semi = fit.semi_axes[idx].copy()
+        centre = centre @ R.T + origin  # world centres
+        axes = np.einsum("ij,kjl->kil", R, axes)  # world axis directions (columns)
+        semi = semi.copy()
         # The hull's corners of each accepted piece, in the world.
-        on = accept[fit.corner_piece]
-        corner_owner = np.searchsorted(idx, fit.corner_piece[on])  # ascending: the corners are piece by piece
-        first_corner = np.searchsorted(corner_owner, np.arange(len(idx)))
-        corners = self.grid.to_world(fit.corners[on] * res)
+        first_corner = np.searchsorted(corner_owner, np.arange(len(centre)))
+        corners = self.grid.to_world(corners * res)
         for _ in range(2):
             A = _shape(axes, semi)
             u = np.einsum("kij,kj->ki", A[corner_owner], corners - centre[corner_owner])
@@ -313,16 +329,12 @@ class GridCover:
         else:
             raise AssertionError("a fitted ellipse does not contain its cells")
         r = self.margin_m
-        pk = p[idx]
-        grown_semi = np.sqrt((1.0 + 1.0 / pk)[:, None] * semi**2 + ((1.0 + pk) * r * r)[:, None])
+        grown_semi = np.sqrt((1.0 + 1.0 / p)[:, None] * semi**2 + ((1.0 + p) * r * r)[:, None])
         grown_A = _shape(axes, grown_semi)
         raw_Ab = np.concatenate([A, -np.einsum("kij,kj->ki", A, centre)[:, :, None]], axis=2)
         grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
-        starts = np.searchsorted(piece, idx)
-        ends = np.searchsorted(piece, idx, side="right")
-        for k in range(len(idx)):
-            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=float(pk[k]), excess_m=float(excess[idx[k]]),
-                            cells=cells[starts[k] : ends[k]])
+        for k, (pk, ek) in enumerate(zip(p.tolist(), excess.tolist())):
+            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=pk, excess_m=ek, cells=cells[k])
 
 
 def _shape(axes: FloatArray, semi: FloatArray) -> FloatArray:
@@ -348,9 +360,9 @@ class _Fits:
 
 def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     """Every piece's Löwner–John ellipse of its smaller bounding rectangle (see the module docstring)."""
-    starts = np.flatnonzero(np.r_[True, piece[1:] != piece[:-1]])
+    starts, ends = _runs(piece[1:] != piece[:-1])
     count = len(starts)
-    n = np.diff(np.r_[starts, len(piece)]).astype(float)
+    n = (ends - starts).astype(float)
     xy = cells + 0.5
     mean = np.add.reduceat(xy, starts, axis=0) / n[:, None]
     d = xy - mean[piece]
@@ -362,23 +374,26 @@ def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     # The first and last cell of each row of each piece: the corners of their cells bound the piece (a
     # cell lies between its row's first and last, inside the rectangle of their corners).
     row = cells[:, 1]
-    first = np.flatnonzero(np.r_[True, (row[1:] != row[:-1]) | (piece[1:] != piece[:-1])])
-    last = np.r_[first[1:] - 1, len(row) - 1]
+    first, after = _runs((row[1:] != row[:-1]) | (piece[1:] != piece[:-1]))
+    last = after - 1
     i0, i1, j = cells[first, 0], cells[last, 0] + 1, row[first]
-    corners = np.stack([np.column_stack([i0, j]), np.column_stack([i0, j + 1]),
-                        np.column_stack([i1, j]), np.column_stack([i1, j + 1])], axis=1).reshape(-1, 2)
+    corners = np.empty((len(first), 4, 2), dtype=cells.dtype)  # (i0, j), (i0, j + 1), (i1, j), (i1, j + 1)
+    corners[:, :2, 0], corners[:, 2:, 0] = i0[:, None], i1[:, None]
+    corners[:, ::2, 1], corners[:, 1::2, 1] = j[:, None], j[:, None] + 1
+    corners = corners.reshape(-1, 2)
     corner_piece = np.repeat(piece[first], 4)
-    cstarts = np.flatnonzero(np.r_[True, corner_piece[1:] != corner_piece[:-1]])
+    cstarts = 4 * np.searchsorted(first, starts)  # each piece's first row starts a run: 4 corners a run
     cf = corners.astype(float)
     # The rectangle along the principal axes, and along the grid's; the smaller is fitted.
-    u, v = direction[corner_piece], np.column_stack([-direction[:, 1], direction[:, 0]])[corner_piece]
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    u, v = direction[corner_piece], normal[corner_piece]
     along = np.column_stack([np.einsum("ij,ij->i", cf, u), np.einsum("ij,ij->i", cf, v)])
     lo_p, hi_p = np.minimum.reduceat(along, cstarts, axis=0), np.maximum.reduceat(along, cstarts, axis=0)
     lo_g, hi_g = np.minimum.reduceat(cf, cstarts, axis=0), np.maximum.reduceat(cf, cstarts, axis=0)
     principal = np.prod(hi_p - lo_p, axis=1) < np.prod(hi_g - lo_g, axis=1) * (1.0 - 1e-9)
     axes = np.zeros((count, 2, 2))
     axes[:, :, 0] = np.where(principal[:, None], direction, [1.0, 0.0])
-    axes[:, :, 1] = np.where(principal[:, None], np.column_stack([-direction[:, 1], direction[:, 0]]), [0.0, 1.0])
+    axes[:, :, 1] = np.where(principal[:, None], normal, [0.0, 1.0])
     lo = np.where(principal[:, None], lo_p, lo_g)
     hi = np.where(principal[:, None], hi_p, hi_g)
     half = 0.5 * res * (hi - lo)
@@ -388,6 +403,13 @@ def _fit_boxes(cells: IntArray, piece: IntArray, *, res: float) -> _Fits:
     axes[swap] = axes[swap][:, :, ::-1]
     return _Fits(count=count, count_cells=n, mean=mean, direction=direction, corners=corners,
                  corner_piece=corner_piece, centre=centre, semi_axes=math.sqrt(2.0) * half, axes=axes)
+
+
+def _runs(change: NDArray[np.bool_]) -> tuple[IntArray, IntArray]:
+    """Where the runs of a sequence start and end (one past their last): a run starts at 0 and at i + 1
+    wherever `change[i]` (element i + 1 differs from element i), and ends where the next starts."""
+    inner = np.flatnonzero(change) + 1
+    return np.concatenate(([0], inner)), np.concatenate((inner, [len(change) + 1]))
 
 
 def _sides(cells: IntArray, piece: IntArray, fit: _Fits) -> NDArray[np.bool_]:
@@ -417,7 +439,7 @@ def _sample_max(centre: FloatArray, axes: FloatArray, semi: FloatArray, boxes: I
     # A sample (u, v) of the unit disc, in cells from its window's corner: c + V diag(semi) (u, v) / res,
     # its coefficients formed once per ellipse and repeated to its samples. Inside the box, so inside the
     # window: ≥ 0, and a cast truncates as the floor does.
-    start, row0, col0, width = (boxes[k, column] for column in (4, 5, 6, 7))
+    start, row0, col0, width = boxes[k, 4:8].T
     sa, sb = semi[k, 0] / res, semi[k, 1] / res
     coefficients = np.stack([centre[k, 0] / res - col0, axes[k, 0, 0] * sa, axes[k, 0, 1] * sb,
                              centre[k, 1] / res - row0, axes[k, 1, 0] * sa, axes[k, 1, 1] * sb])

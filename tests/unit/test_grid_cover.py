@@ -142,3 +142,23 @@ def test_a_tiles_grown_ellipses_stay_within_its_halo():
             extent = np.sqrt(np.diag(np.linalg.inv(e.A @ e.A)))  # the ellipse's half-extent along x and y
             assert np.all(e.center - extent >= lo - 1e-9) and np.all(e.center + extent <= hi + 1e-9)
             assert math.isfinite(piece.excess_m)
+
+
+def test_a_distance_window_is_the_rounding_of_the_exact_distance_on_every_call():
+    """OpenCV's transform alone gives values an ulp off the exact one, and not the same from call to call."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    grid = OccupancyGrid.from_mask(rng.random((120, 160)) < 0.01, resolution_m=0.05)
+    cover = GridCover(grid, margin_m=0.45)
+    group = [(x, y) for x in range(cover.tiles_shape[0]) for y in range(cover.tiles_shape[1])]
+    first = cover._window(group)
+    r, c = first.distance.shape
+    free = ~grid.padded_blocked(slice(first.row0, first.row0 + r), slice(first.col0, first.col0 + c))
+    exact = np.maximum(ndimage.distance_transform_edt(free).astype(np.float32).astype(float) * 0.05 - 0.025, 0.0)
+    # Compared where the window is exact (every cell within reach of a blocked one inside it).
+    near = exact <= (cover.reach_cells - 2) * 0.05
+    assert near.sum() > 1000
+    assert np.array_equal(first.distance[near], exact.astype(np.float32)[near])
+    for _ in range(5):
+        assert np.array_equal(cover._window(group).distance, first.distance)
