@@ -65,7 +65,8 @@ def _cmd_service(args: argparse.Namespace) -> int:
                        seed=args.seed),
         MONITOR.name: dict(record=args.record, viewer=args.viewer, viewer_url=args.viewer_url),
         ROS2.name: dict(domain_id=args.domain_id, namespace=_ros_namespace(args.namespace)),
-        "planner": dict(deadline=True) if args.deadline else {},  # a swapped planner's factory takes the scenario alone
+        # A swapped planner's factory takes the scenario alone.
+        "planner": dict(deadline=True, budget_ms=args.budget_ms) if args.deadline else {},
     }.get(args.name, {})
     try:
         return serve(name=args.name, scenario=scenario, session_config=zenoh_config_from_args(args),
@@ -118,7 +119,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              monitor_args=_monitor_args(args), connect=tuple(args.connect),
                              listen=tuple(args.listen), tls_dir=args.tls.resolve() if args.tls else None,
                              record_messages=args.record_messages, keep_logs=args.keep_logs, robot=robot,
-                             warm_spares=args.warm_spares or robot is not None)
+                             warm_spares=args.warm_spares or robot is not None, planner_budget_ms=args.budget_ms)
         if prepare_tls(options):
             print(f"made a CA and certificates for every stage in {options.tls_dir}", file=sys.stderr)
     except RunError as error:
@@ -391,6 +392,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("scenario", nargs="?", type=Path, help="scenario file (default: the paper's)")
     run.add_argument("--out", type=Path, default=Path("run.json"), help="run file to write")
     run.add_argument("--realtime", action="store_true", help="run the sim on the wall clock (default: lockstep)")
+    run.add_argument("--budget-ms", type=_positive_float, default=None,
+                     help="the planner's budget per scan in a live run (--realtime, --ros2; default 15 %% of the "
+                          "sensor's period)")
     run.add_argument("--timeout-s", type=_positive_float, default=None,
                      help="sim-time limit in seconds (default: from the scenario's tour length)")
     run.add_argument("--stages", type=Path, default=None,
@@ -452,9 +456,11 @@ def build_parser() -> argparse.ArgumentParser:
                               "the network (end of input: exit 0)")
     planner = service.add_argument_group("planner")
     planner.add_argument("--deadline", action="store_true",
-                         help="planner: answer each scan within a quarter of the sensor's period, with the best "
-                              "verified path at hand, replanning in the background (live runs; lockstep runs wait "
-                              "for the best)")
+                         help="planner: answer each scan within its budget, with the best verified path at hand, "
+                              "replanning in the background (live runs; lockstep runs wait for the best)")
+    planner.add_argument("--budget-ms", type=_positive_float, default=None,
+                         help="planner, with --deadline: each answer's budget (default 15 %% of the sensor's period, "
+                              "15 ms at 10 Hz)")
     sim = service.add_argument_group("sim")
     sim.add_argument("--out", type=Path, default=None, help="sim: run file to write when the run ends")
     sim.add_argument("--realtime", action="store_true", help="sim: run on the wall clock")

@@ -165,6 +165,7 @@ class RunOptions:
     tls_dir: Path | None = None  # mutual TLS + access control with the certificates of `cvxnav certs` here
     record_messages: Path | None = None  # MCAP file of every message under the prefix
     robot: RobotOptions | None = None  # a ROS 2 robot's graph: the bridge runs in the sim's place
+    planner_budget_ms: float | None = None  # a live run's planner budget per scan (None: its default share)
     # A stage that exits is restarted after restart_backoff_s, doubled for each of its restarts within
     # restart_window_s, at most restart_backoff_max_s; more than max_restarts of them end the run.
     restart_backoff_s: float = 0.5
@@ -335,6 +336,8 @@ class Supervisor:
             cmd += ["--entry", choice.entry_point]
         if name == "planner" and not swapped and (self.options.realtime or self.options.robot is not None):
             cmd += ["--deadline"]  # the world does not wait for the answer: each scan's within its period
+            if self.options.planner_budget_ms is not None:
+                cmd += ["--budget-ms", repr(self.options.planner_budget_ms)]
         if name == MONITOR.name:
             cmd += self._monitor_args()
         if name == SIM.name:

@@ -14,7 +14,7 @@ within a turning radius of it given up down to the run's hard floor (`relieved_s
 boxed in even there, it gets `no_path` with that reason, and the sim backs the car out along its
 tracks (`sim.core`): the planner plans forward motion only.
 
-With a budget (`PlannerConfig.budget_s`: in a live run a quarter of the sensor period) every scan is
+With a budget (`PlannerConfig.budget_s`: in a live run 15 % of the sensor period, or `--budget-ms`) every scan is
 answered within it, and repairs and replans go on in the background. The foreground only checks what
 the stage has: the current plan trimmed to the robot and re-verified against the scan's ellipses. A
 repair or replan runs on a worker thread (`_Replan`: one at a time, from a snapshot of the scan's
@@ -79,9 +79,9 @@ _REPAIR_MIN_LEVEL = 0.5
 _REPAIR_ITERATIONS_UNMET = 4
 _REPLANNING = ("replanning: no verified path for this scan within the budget; the replan goes on in the "
                "background")
-# With a deadline, the planner's share of the sensor period: sensing, ellipsoids, smoother and the hops
-# between them take the rest.
-_PERIOD_SHARE = 0.25
+# With a deadline, the planner's default share of the sensor period: sensing, ellipsoids, smoother and the
+# hops between them take the rest (docs/closed-loop.md: a quarter left live p99 past 50 ms on two scenes).
+_PERIOD_SHARE = 0.15
 # How long `stop()` waits for a replan it called off: within the shell's grace for the whole stop
 # (services.shell.stage.STOP_GRACE_S), with room for closing the session.
 _STOP_WAIT_S = 1.0
@@ -323,12 +323,14 @@ class PlannerStage:
         self._verdict = ""
 
     @classmethod
-    def from_scenario(cls, scenario: Scenario, *, deadline: bool = False) -> PlannerStage:
-        """The planner of `scenario`; with `deadline`, each answer's budget is its share of the sensor's
-        period (a live run: `_PERIOD_SHARE`)."""
+    def from_scenario(cls, scenario: Scenario, *, deadline: bool = False,
+                      budget_ms: float | None = None) -> PlannerStage:
+        """The planner of `scenario`; with `deadline`, each answer's budget is `budget_ms`, by default its
+        share of the sensor's period (a live run: `_PERIOD_SHARE`)."""
         config = PlannerConfig.from_scenario(scenario)
         if deadline:
-            config = replace(config, budget_s=_PERIOD_SHARE / float(scenario.sensor.rate_hz))
+            budget_s = _PERIOD_SHARE / float(scenario.sensor.rate_hz) if budget_ms is None else budget_ms * 1e-3
+            config = replace(config, budget_s=budget_s)
         return cls(config=config)
 
     def state(self) -> bytes:

@@ -305,3 +305,11 @@ def test_new_goals_call_a_background_replan_off_and_stop_leaves_no_replan_runnin
     running = planner._replan_job  # the replan for the new goals
     planner.stop(now_s=0.0)
     assert not planner.replanning and not running._thread.is_alive()
+
+
+def test_a_live_planners_budget_is_its_share_of_the_sensor_period_or_the_one_given():
+    scenario = bundled_scenario()
+    assert PlannerStage.from_scenario(scenario).config.budget_s is None  # lockstep: no deadline
+    period_s = 1.0 / float(scenario.sensor.rate_hz)
+    assert PlannerStage.from_scenario(scenario, deadline=True).config.budget_s == pytest.approx(0.15 * period_s)
+    assert PlannerStage.from_scenario(scenario, deadline=True, budget_ms=40.0).config.budget_s == pytest.approx(0.04)
