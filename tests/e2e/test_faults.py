@@ -179,15 +179,16 @@ def test_the_car_brakes_to_a_stop_and_waits_while_a_stage_is_down(killed_run):
     t, v = speeds(run)
     decel = VehicleLimits.from_scenario(PAPER).max_decel_mps2
     for kill in kills:
-        # Stopped within the braking distance's time (plus a scan of detection and stamp lag) ...
-        stopped_by_s = kill.killed_s + kill.speed_mps / decel + 0.3
-        # ... and standing until the restarted stage was back (less its reconnect and a scan of stamp lag).
-        standing = (t >= stopped_by_s) & (t <= kill.back_s - 0.3)
-        assert standing.any(), f"{kill.stage}: back at {kill.back_s:.2f} s, too soon to see the car stand"
-        assert np.max(v[standing]) < 1e-3, f"{kill.stage}: the car moved while the stage was down"
+        # While the stage was down (from a scan of detection until it was back, less its reconnect and a
+        # scan of stamp lag) the car braked at the vehicle's deceleration from at most 0.3 s after the kill,
+        # and stood once that had stopped it. A stage back sooner than the car can stop (a fast restart)
+        # shows only the braking.
+        down = (t > kill.killed_s + 0.1) & (t <= kill.back_s - 0.3)
+        assert down.any(), f"{kill.stage}: back at {kill.back_s:.2f} s, before the car could react"
+        braked = np.maximum(kill.speed_mps - decel * (t[down] - kill.killed_s - 0.3), 0.0)
+        assert np.all(v[down] <= braked + 1e-3), f"{kill.stage}: the car moved faster than braking allows"
         # Braking never speeds the car up.
-        braking = (t > kill.killed_s + 0.1) & (t < stopped_by_s)
-        assert np.all(np.diff(v[braking]) <= 1e-3), f"{kill.stage}: the car sped up while braking"
+        assert np.all(np.diff(v[down]) <= 1e-3), f"{kill.stage}: the car sped up while braking"
         # And it drove on once the stage was back.
         assert np.max(v[t > kill.back_s], initial=0.0) > 0.3
 
