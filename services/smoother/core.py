@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import BSpline
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, as_complex
+from services.geometry import Ellipse, EllipseStack, FloatArray, as_complex, distance, norms
 
 SAMPLES_PER_SPAN = 16
 
@@ -93,7 +93,7 @@ def verify(
     u, z = dense_samples(curve) if dense is None else dense
     d1 = curve.derivative(1)(u)
     d2 = curve.derivative(2)(u)
-    speed = _norms(d1)
+    speed = norms(d1)
     if np.any(speed <= 1e-12):
         return Verification(False, 0.0, np.inf, "curve has a cusp (zero tangent)")
     curvature = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) / speed**3
@@ -102,7 +102,7 @@ def verify(
     min_level = np.inf
     if ellipses:
         du = np.diff(u)
-        acc = _norms(d2)
+        acc = norms(d2)
         # B″ is linear on each knot span and the samples include the knots, so the larger end value
         # bounds ‖B″‖ on every sample interval.
         deviation = np.maximum(acc[:-1], acc[1:]) * du**2 / 8.0
@@ -122,14 +122,6 @@ def verify(
         bounds_min=bounds_min,
         bounds_max=bounds_max,
     )
-
-
-def _norms(v: FloatArray) -> FloatArray:
-    """‖vᵢ‖ for each row of an (n, 2) array, as `np.linalg.norm(v, axis=1)` computes it (the same
-    squares, summed in the same order) without its reduction over a 2-long axis: 7 against 42 µs on
-    3 000 rows."""
-    x, y = v[:, 0], v[:, 1]
-    return np.sqrt(x * x + y * y)
 
 
 def _judge(
@@ -199,7 +191,7 @@ def sample(curve: BSpline, *, spacing_m: float, dense: tuple[FloatArray, FloatAr
     `dense`: `dense_samples(curve)`, when the caller has them.
     """
     u, z = dense_samples(curve) if dense is None else dense
-    s = np.concatenate([[0.0], np.cumsum(_norms(np.diff(z, axis=0)))])
+    s = np.concatenate([[0.0], np.cumsum(distance(z[1:], z[:-1]))])
     targets = np.linspace(0.0, s[-1], _sample_count(s[-1], spacing_m=spacing_m))
     return curve(np.interp(targets, s, u))
 

@@ -7,13 +7,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.geometry import Ellipse, EllipseStack, polyline_length
+from services.geometry import Ellipse, EllipseStack, distance, polyline_length
 from services.planner.core import goals_ahead, intersected, plan_path, stay_at_start
 from services.planner.refine import RefineSettings, resample_legs
 from services.planner.route import tangent_route
 from services.planner.route.arcs import Arcs, cuts
 from services.planner.route.cells import DeepCells
-from services.planner.route.frames import Frames, distance
+from services.planner.route.frames import Frames
 from services.planner.route.roots import trig_roots
 from services.planner.route.tangents import pair_tangents
 

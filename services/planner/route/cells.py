@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.geometry import EllipseStack, FloatArray
-from services.planner.route.frames import distance
+from services.geometry import EllipseStack, FloatArray, distance
 
 _DEEP_CELL = 0.5  # grid cells of the blocked-segment proof, × the median smallest semi-axis
 _FIRST_STRIDE = 8  # samples read in the proof's first pass: every 8th (docs/maps.md)

@@ -58,11 +58,5 @@ class Frames:
         return np.mod(np.arctan2(u[:, 1], u[:, 0]), 2.0 * np.pi)
 
 
-def distance(x: FloatArray, y: FloatArray) -> FloatArray:
-    """‖x − y‖ row by row (as np.linalg.norm sums it, without its (k, 2) temporaries)."""
-    dx, dy = x[..., 0] - y[..., 0], x[..., 1] - y[..., 1]
-    return np.sqrt(dx * dx + dy * dy)
-
-
 def unit(theta: FloatArray) -> FloatArray:
     return np.stack([np.cos(theta), np.sin(theta)], axis=-1)

@@ -15,10 +15,10 @@ import numpy as np
 from scipy.sparse import csr_array
 from scipy.sparse.csgraph import dijkstra
 
-from services.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, EllipseStack, FloatArray, distance
 from services.planner.route.arcs import Arcs, arc_length, arc_polyline, cuts
 from services.planner.route.cells import DeepCells
-from services.planner.route.frames import Frames, distance
+from services.planner.route.frames import Frames
 from services.planner.route.tangents import Segments, pair_tangents, terminal_tangents
 
 _CHUNK = 20_000  # segments checked at once: bounds the memory of the broad phase
