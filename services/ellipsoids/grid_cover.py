@@ -42,6 +42,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -240,11 +241,11 @@ class GridCover:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
 
     def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32]):
-        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken,
-        level by level, proved and made in one batch after the last level (`_accepted`).
+        """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken
+        (in the order of their levels), proved and made in one batch after the last level (`_accepted`).
         `distance`: the windows' distances, one after another (each piece's box says where its window is)."""
         tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
-        taken: list[tuple] = []  # each level's accepted pieces, as `_accepted` takes them
+        taken: list[_Taken] = []  # each level's accepted pieces
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
             self.fit_count += fit.count
@@ -256,9 +257,10 @@ class GridCover:
             if len(idx := np.flatnonzero(accept)):
                 on = accept[fit.corner_piece]
                 starts, ends = np.searchsorted(piece, idx), np.searchsorted(piece, idx, side="right")
-                taken.append((fit.centre[idx], fit.axes[idx], fit.semi_axes[idx], p[idx], excess[idx], fit.corners[on],
-                              np.searchsorted(idx, fit.corner_piece[on]),  # ascending: corners are piece by piece
-                              [cells[a:b] for a, b in zip(starts.tolist(), ends.tolist())]))
+                taken.append(_Taken(centre=fit.centre[idx], axes=fit.axes[idx], semi=fit.semi_axes[idx], p=p[idx],
+                                    excess=excess[idx], corners=fit.corners[on],
+                                    corner_owner=np.searchsorted(idx, fit.corner_piece[on]),
+                                    cells=[cells[a:b] for a, b in zip(starts.tolist(), ends.tolist())]))
             # The split pieces' halves: piece 2k + side, renumbered, still by row then column within.
             keep = ~accept[piece]
             halves = 2 * piece[keep] + side[keep].astype(np.intp)
@@ -269,12 +271,7 @@ class GridCover:
             cells, piece = cells[keep][order], halves[order]
             boxes = boxes[labels // 2]
         if taken:
-            owners = np.cumsum([0] + [len(level[3]) for level in taken[:-1]])
-            yield from self._accepted(
-                *(np.concatenate([level[k] for level in taken]) for k in range(6)),
-                np.concatenate([level[6] + offset for level, offset in zip(taken, owners)]),
-                [piece_cells for level in taken for piece_cells in level[7]],
-            )
+            yield from self._accepted(taken)
 
     def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
@@ -304,17 +301,21 @@ class GridCover:
             excess[near] = np.maximum(excess[near], edge_and_inner - r)
         return p[take, best], grown[take, best], excess
 
-    def _accepted(self, centre: FloatArray, axes: FloatArray, semi: FloatArray, p: FloatArray, excess: FloatArray,
-                  corners: IntArray, corner_owner: IntArray, cells: list[IntArray]):
-        """The accepted pieces as world ellipses, each proved to contain its cells (see the module): their
-        fits (grid-frame centres, axis directions, semi-axes), growth parameters, excesses, their hulls'
-        corners (in cells; `corner_owner`: each one's piece, ascending) and their cells."""
+    def _accepted(self, taken: list[_Taken]):
+        """The pieces every level took, as world ellipses, each proved to contain its cells (see the module)."""
+        def joined(name: str) -> np.ndarray:
+            return np.concatenate([getattr(level, name) for level in taken])
+
+        centre, axes, semi = joined("centre"), joined("axes"), joined("semi")
+        p, excess, corners = joined("p"), joined("excess"), joined("corners")
+        offsets = np.cumsum([0] + [len(level.p) for level in taken[:-1]])  # a level's first piece among them all
+        corner_owner = np.concatenate([level.corner_owner + offset for level, offset in zip(taken, offsets)])
+        cells = [piece_cells for level in taken for piece_cells in level.cells]
         res = self.grid.resolution_m
         R = self.grid.rotation
         origin = np.array([self.grid.origin_x_m, self.grid.origin_y_m])
         centre = centre @ R.T + origin  # world centres
         axes = np.einsum("ij,kjl->kil", R, axes)  # world axis directions (columns)
-        semi = semi.copy()
         # The hull's corners of each accepted piece, in the world.
         first_corner = np.searchsorted(corner_owner, np.arange(len(centre)))
         corners = self.grid.to_world(corners * res)
@@ -335,6 +336,21 @@ class GridCover:
         grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
         for k, (pk, ek) in enumerate(zip(p.tolist(), excess.tolist())):
             yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=pk, excess_m=ek, cells=cells[k])
+
+
+class _Taken(NamedTuple):
+    """The pieces one level of `GridCover._bisect` accepted: their fits (grid-frame centres, axis directions,
+    semi-axes), growth parameters and excesses, their hulls' corners (in cells; `corner_owner`: each
+    one's piece among them, ascending) and each piece's cells."""
+
+    centre: FloatArray
+    axes: FloatArray
+    semi: FloatArray
+    p: FloatArray
+    excess: FloatArray
+    corners: IntArray
+    corner_owner: IntArray
+    cells: list[IntArray]
 
 
 def _shape(axes: FloatArray, semi: FloatArray) -> FloatArray:
