@@ -45,6 +45,7 @@ from schemas.wiring import (
 
 PREFIX = default_prefix()
 SETTLE_S = 1.0
+QUERY_TIMEOUT_S = 8.0  # what a query may wait for its replies here
 
 
 def _scan(seq: int) -> str:
@@ -165,6 +166,8 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
                     tokens.setdefault(watcher, set()).add(stage_of_alive_key(PREFIX, str(sample.key_expr)))
         return callback
 
+    finished = threading.Semaphore(0)  # released as each query ends
+    asked_queries = 0
     sessions = {name: open_session(client_config(cert_dir=ours, name=name, connect=[endpoint])) for name in names}
     try:
         publishers = {}  # declared, as the shell declares them: they send only towards subscribers they are told of
@@ -179,9 +182,13 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
             for what, key_expr in keys.items():
                 publishers[name, what].put(name)
                 publishers[name, what].delete()
-                # Every session asks every key at once: an answer may take longer than a settle, and the
-                # replies are read only after the token phases below (about 5 settles on).
-                session.get(key_expr, on_reply(name, what), timeout=4 * SETTLE_S)
+                # Every session asks every key at once: an answer may take longer than a settle (on a
+                # loaded machine, seconds), so the replies are read only once every query has finished.
+                # Every reply counts, not the one per key that consolidation would keep (its own
+                # queryable's local reply, on the same key, would hide another's at random).
+                session.get(key_expr, zenoh.handlers.Callback(on_reply(name, what), drop=finished.release),
+                            consolidation=zenoh.ConsolidationMode.NONE, timeout=QUERY_TIMEOUT_S)
+                asked_queries += 1
         # Tokens under every other name: none may reach anyone (a session sees its own locally).
         foreign = [session.liveliness().declare_token(alive_key(PREFIX, other))
                    for name, session in sessions.items() for other in names if other != name]
@@ -203,6 +210,8 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
             watched = {name: tokens.get(name, set()) for name in names}
         for token in own:
             token.undeclare()
+        for _ in range(asked_queries):  # a refused query ends at its timeout, an allowed one with its replies
+            assert finished.acquire(timeout=2 * QUERY_TIMEOUT_S), "a query never finished"
     finally:
         for session in sessions.values():
             session.close()
