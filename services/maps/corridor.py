@@ -28,8 +28,11 @@ what the query can use is built:
    one, it is fitted and added and the plan made again. The path returned touches no ellipse of the
    whole map's cover, and its route is the shortest among a subset of them within the corridor: the
    exact optimum of the model within its corridor (a relaxation's optimum that is feasible is optimal).
-   A search kept to the corridor that finds nothing is made again without it; one without it that finds no
-   route among some of the ellipses proves there is none among all of them.
+   A plan whose curve fails verification is held against them too: made among too few ellipses, it may
+   have failed on a turn through a wall mass no tile of which was fitted, and is made again with the
+   ellipses it met. A search kept to the corridor that finds nothing (or nothing drivable, meeting no
+   other ellipse) is made again without it; one without it that finds no route among some of the
+   ellipses proves there is none among all of them.
 """
 
 from __future__ import annotations
@@ -374,24 +377,26 @@ def plan_in_corridor(
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
         plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to)
-        if plan.status != "ok" or smoothed is None or not smoothed.verification.ok:
-            if keep_to is None:
-                break  # no route among a subset of the ellipses: none among all of them
-            keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
-            continue
-        with timer("fit"):
-            new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
-            if new:
-                tiles |= new
-                fitted = cover.pieces(tiles)
-            planned = {id(piece) for piece in used}
-            others = [piece for piece in fitted if id(piece) not in planned]
-            stack = _grown_stack(others)
-            hit = np.union1d(_entered(stack, plan.points, level=1.0),
-                             _entered(stack, smoothed.points, level=_CURVE_LEVEL))
-            if not len(hit):
+        if plan.status == "ok":
+            # Held against the rest of the cover whether its curve verified or not: a plan that failed
+            # among too few ellipses (a route through a wall mass no tile of which was fitted, with a turn
+            # there the car cannot make) says nothing of the map until the ellipses it met are in.
+            with timer("fit"):
+                new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
+                if new:
+                    tiles |= new
+                    fitted = cover.pieces(tiles)
+                planned = {id(piece) for piece in used}
+                others = [piece for piece in fitted if id(piece) not in planned]
+                hit = _met(_grown_stack(others), plan, smoothed)
+            if len(hit):
+                used += [others[k] for k in hit.tolist()]
+                continue
+            if smoothed is not None and smoothed.verification.ok:
                 break
-            used += [others[k] for k in hit.tolist()]
+        if keep_to is None:
+            break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
+        keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
     return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, keep_to is not None)
 
 
@@ -507,6 +512,13 @@ def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray
         return np.zeros(0, dtype=np.intp)
     _, cols, levels = stack.segment_pairs(path[:-1], path[1:])
     return np.unique(cols[levels < level])
+
+
+def _met(stack: EllipseStack, plan: PathPlan, smoothed: Smoothed | None) -> IntArray:
+    """Indices of the ellipses the plan's refined points (at level 1) or its smoothed curve's samples (at
+    `_CURVE_LEVEL`) come within."""
+    hit = _entered(stack, plan.points, level=1.0)
+    return hit if smoothed is None else np.union1d(hit, _entered(stack, smoothed.points, level=_CURVE_LEVEL))
 
 
 def _touched(plan: PathPlan, smoothed: Smoothed | None) -> FloatArray:

@@ -52,3 +52,18 @@ def test_a_corridor_query_on_the_aces_building(shared_dir: Path, tmp_path: Path)
     # Along the corridors: longer than the straight line, shorter than a grid planner's 8-connected path.
     assert polyline_length(path) >= np.linalg.norm(scenario.goals_array[0] - scenario.start.xy)
     assert len(plan.ellipsoids) < 1000  # of the ~2000 the whole map's cover has
+
+
+def test_a_plan_that_fails_among_too_few_ellipses_is_made_again_among_those_it_met(shared_dir: Path, tmp_path: Path):
+    # A query along the ACES corridor that a random sample of its free space drew: the first plan, among
+    # the corridor's walls alone, takes a route through a wall mass no tile of which was fitted, with a
+    # turn there the car cannot make. Its failure said nothing of the map: the ellipses it met are added
+    # and the plan made again (before, the failed curve ended the search as no_path).
+    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    if not aces.is_file():
+        pytest.skip(f"{aces} is absent")
+    doc = _scenario_doc("aces-wall-mass", map_path=str(aces), start=(9.609, -19.254, np.pi), goal=(-0.591, -36.954),
+                        description="")
+    (tmp_path / "aces.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "aces.json")
+    _assert_verified(scenario, plan_scenario(scenario))
