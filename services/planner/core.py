@@ -23,6 +23,10 @@ from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
 
 _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel need no turn
+# A turning lead-in (`_turns`) is planned this much wider than the turning radius: an arc at the radius
+# itself would break the refinement's curvature budget, which its step floors make stricter.
+_TURN_WIDER = 1.15
+_MIN_TURN_RAD = math.pi / 8  # turns smaller than this (either way round) get no turning lead-in
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 
 
@@ -129,7 +133,7 @@ def _straight(
 def _route(
     *,
     start: FloatArray,
-    origin: FloatArray,
+    lead: FloatArray | None,
     goals: FloatArray,
     ellipses: list[Ellipse],
     bounds_min: FloatArray,
@@ -139,14 +143,15 @@ def _route(
     estimate_m: Sequence[float] | None,
     keep_to: KeepTo | None,
 ) -> list[FloatArray] | None:
-    """Legs of the shortest route, after a straight lead-in start → origin (none when origin is start),
-    round ellipses enlarged by `extra_m`. The caller has checked the lead-in against the ellipses
-    themselves; here it is checked against the enlarged ones."""
+    """Legs of the shortest route, after a lead-in (a polyline from the start; None: none), round
+    ellipses enlarged by `extra_m`. The caller has checked the lead-in against the ellipses themselves;
+    here it is checked against the enlarged ones."""
     grown = ellipses
     if extra_m > 0:
         grown = [e.grown(extra_m) for e in ellipses]
-        if origin is not start and len(intersected(np.vstack([start, origin]), grown, level=level)):
+        if lead is not None and len(intersected(lead, grown, level=level)):
             return None
+    origin = start if lead is None else lead[-1]
     reference = np.vstack([origin, goals])
     if len(intersected(reference, grown, level=level)) == 0 and (
             keep_to is None or np.all(keep_to(reference[:-1], reference[1:]))):
@@ -156,10 +161,41 @@ def _route(
             start=origin, goals=goals, ellipses=grown, bounds_min=bounds_min, bounds_max=bounds_max, level=level,
             estimate_m=estimate_m, keep_to=keep_to,
         )
-    if legs is not None and origin is not start:
-        legs[0] = np.vstack([start, legs[0]])
+    if legs is not None and lead is not None:
+        legs[0] = np.vstack([lead[:-1], legs[0]])
     return legs
 
+
+def _turn(start: FloatArray, heading_rad: float, *, radius: float, turn_rad: float, step_m: float) -> FloatArray:
+    """The circle of `radius` a car at (start, heading) follows turning by `turn_rad` (left > 0), as
+    points at most `step_m` apart."""
+    side = math.copysign(1.0, turn_rad)
+    centre = start + side * radius * np.array([-math.sin(heading_rad), math.cos(heading_rad)])
+    count = max(2, math.ceil(abs(turn_rad) * radius / step_m) + 1)
+    angle = heading_rad - side * 0.5 * math.pi + np.linspace(0.0, turn_rad, count)
+    return centre + radius * np.column_stack([np.cos(angle), np.sin(angle)])
+
+
+def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: float, step_m: float) -> list[FloatArray]:
+    """Lead-ins that turn the car onto the direction the route leaves the start in (towards its point a
+    turning radius on): the short way round, then the long way (a loop, which a corridor too narrow to
+    make the short turn in may leave room for). The route search is blind to the heading, and the
+    refinement, local, keeps the side of the turn it is handed."""
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(leg, axis=0), axis=1))])
+    ahead = leg[min(int(np.searchsorted(along, radius)), len(leg) - 1)] - start
+    left = (math.atan2(ahead[1], ahead[0]) - heading_rad) % (2.0 * math.pi)
+    out = []
+    for turn in sorted((left, left - 2.0 * math.pi), key=abs):
+        if _MIN_TURN_RAD <= abs(turn) <= 2.0 * math.pi - _MIN_TURN_RAD:
+            out.append(_turn(start, heading_rad, radius=radius, turn_rad=turn, step_m=step_m))
+    return out
+
+
+def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bounds_max: FloatArray, *,
+           level: float) -> bool:
+    """Whether a lead-in stays within the bounds and outside every ellipse (at `level`)."""
+    return bool(np.all(lead >= bounds_min) and np.all(lead <= bounds_max)
+                and not len(intersected(lead, ellipses, level=level)))
 
 def plan_path(
     *,
@@ -184,8 +220,9 @@ def plan_path(
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
     cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
-    tight to turn in — and refined once more against the true ellipses. Once `late()` (the replan was
-    called off), no further route is tried after one that refined clear.
+    tight to turn in — and refined once more against the true ellipses; last, after a turning lead-in
+    onto the direction the first route leaves in, either way round (`_turns`). Once `late()` (the
+    replan was called off), no further route is tried after one that refined clear.
     """
     start = np.asarray(start, dtype=float)
     goals = np.asarray(goals, dtype=float).reshape(-1, 2)
@@ -211,20 +248,20 @@ def plan_path(
     radius = 1.0 / (settings.curvature_factor * max_curvature)
     # The lead-in: one turning radius along the start heading (none without a heading). Where it
     # leaves the map or crosses an ellipse, it crosses the enlarged ones too: no route after it.
-    lead_end: FloatArray | None = start
-    if heading_rad is not None:
-        lead_end = start + radius * np.array([np.cos(heading_rad), np.sin(heading_rad)])
-        if (np.any(lead_end < bounds_min) or np.any(lead_end > bounds_max)
-                or len(intersected(np.vstack([start, lead_end]), ellipses, level=settings.level))):
-            lead_end = None
+    tries: list[tuple[FloatArray | None, float]] = [(None, 0.0)]
+    if heading_rad is None:
+        tries.append((None, 0.5 * radius))
+    else:
+        lead = np.vstack([start, start + radius * np.array([np.cos(heading_rad), np.sin(heading_rad)])])
+        if _clear(lead, ellipses, bounds_min, bounds_max, level=settings.level):
+            tries += [(lead, 0.0), (lead, 0.5 * radius)]
+    tries.append((None, radius))
     best: PathPlan | None = None
     best_slack = np.inf
-    for lead_in, extra_m in ((False, 0.0), (True, 0.0), (True, 0.5 * radius), (False, radius)):
-        if lead_in and (lead_end is None or (lead_end is start and extra_m == 0.0)):
-            continue  # blocked, or the first route again
+    for attempt, (lead, extra_m) in enumerate(tries):
         legs = _route(
             start=start,
-            origin=lead_end if lead_in else start,
+            lead=lead,
             goals=goals,
             ellipses=ellipses,
             bounds_min=bounds_min,
@@ -235,9 +272,13 @@ def plan_path(
             keep_to=route_keep_to,
         )
         if legs is None:
-            if best is None and not lead_in and extra_m == 0.0:
+            if attempt == 0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
+        if attempt == 0 and heading_rad is not None:
+            tries += [(turn, 0.0) for turn in _turns(start, heading_rad, legs[0], radius=_TURN_WIDER * radius,
+                                                        step_m=settings.spacing_m)
+                      if _clear(turn, ellipses, bounds_min, bounds_max, level=settings.level)]
         try:
             refined = refine(
                 legs=legs,

@@ -67,3 +67,19 @@ def test_a_plan_that_fails_among_too_few_ellipses_is_made_again_among_those_it_m
     (tmp_path / "aces.json").write_text(json.dumps(doc))
     scenario = load_scenario(tmp_path / "aces.json")
     _assert_verified(scenario, plan_scenario(scenario))
+
+
+def test_a_car_facing_away_from_its_route_loops_round_where_the_short_turn_does_not_fit(shared_dir: Path, tmp_path: Path):
+    # In an ACES corridor 3.5 m wide the car faces east-north-east and its goal is 8.5 m south: the right
+    # turn onto the route needs more room than the wall leaves, and the refinement, which keeps the side
+    # of a turn it is handed, cannot find the loop left round on its own; the turning lead-ins hand it one.
+    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    if not aces.is_file():
+        pytest.skip(f"{aces} is absent")
+    doc = _scenario_doc("aces-loop", map_path=str(aces), start=(-0.041, -6.604, 0.2397), goal=(-0.391, -15.054),
+                        description="")
+    (tmp_path / "aces.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "aces.json")
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    heading = np.unwrap(np.arctan2(*np.diff(path, axis=0).T[::-1]))
+    assert heading.max() - heading[0] > np.pi / 2  # it turned left (anticlockwise) first, and far
