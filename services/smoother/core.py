@@ -97,7 +97,8 @@ def verify(
     if np.any(speed <= 1e-12):
         return Verification(False, 0.0, np.inf, "curve has a cusp (zero tangent)")
     curvature = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) / speed**3
-    max_kappa = float(curvature.max())
+    sharpest = int(np.argmax(curvature))
+    max_kappa = float(curvature[sharpest])
 
     min_level = np.inf
     if ellipses:
@@ -114,6 +115,7 @@ def verify(
         direction=(d1[0] / speed[0]).tolist(),
         min_level=min_level,
         max_kappa=max_kappa,
+        sharpest_m=float(np.sum(norms(np.diff(z[: sharpest + 1], axis=0)))),
         max_curvature=max_curvature,
         start=start,
         heading_rad=heading_rad,
@@ -131,6 +133,7 @@ def _judge(
     min_level: float,
     max_kappa: float,
     max_curvature: float,
+    sharpest_m: float = 0.0,
     start: FloatArray,
     heading_rad: float | None,
     goals: FloatArray,
@@ -140,9 +143,9 @@ def _judge(
     box: tuple[list[float], list[float]] | None = None,
 ) -> Verification:
     """The verdict from the curve's samples `z` (ordered, the ends included), its unit direction at
-    the start, its clearance lower bound and its largest curvature. `box`: the corners (lowest x and
-    y, highest x and y) of a box that holds the whole curve, when the caller knows one (a chord's ends
-    span its box); else the bounds are checked on the samples."""
+    the start, its clearance lower bound and its largest curvature (`sharpest_m` along the curve from its
+    start). `box`: the corners (lowest x and y, highest x and y) of a box that holds the whole curve,
+    when the caller knows one (a chord's ends span its box); else the bounds are checked on the samples."""
 
     def fail(reason: str) -> Verification:
         return Verification(False, min_level, max_kappa, reason)
@@ -150,7 +153,7 @@ def _judge(
     if not min_level > 1.0:  # (NaN fails)
         return fail(f"curve enters an ellipse (level {min_level:.4f} <= 1)")
     if not max_kappa <= max_curvature:
-        return fail(f"curvature {max_kappa:.3f} exceeds the bound {max_curvature:.3f} 1/m")
+        return fail(f"curvature {max_kappa:.3f} exceeds the bound {max_curvature:.3f} 1/m, {sharpest_m:.2f} m along the curve")
     # Plain floats for the few numbers, and one pass per test over the samples: the same tests, but
     # numpy's wrappers (np.linalg.norm, np.any, np.clip) cost more than the arithmetic here.
     (x0, y0), (sx, sy) = z[0].tolist(), np.asarray(start, dtype=float).tolist()

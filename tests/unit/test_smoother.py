@@ -49,6 +49,18 @@ def test_curvature_over_the_bound_is_rejected():
     assert "curvature" in result.verification.reason
 
 
+def test_a_curvature_rejection_says_how_far_along_the_curve_it_is_broken():
+    # 4 m straight, then a quarter circle of radius 1 m (curvature 1 against a bound of 0.5): the curve
+    # breaks the bound on the arc, 4 to 5.6 m from its start.
+    straight = np.column_stack([np.linspace(0.0, 4.0, 41)[:-1], np.zeros(40)])
+    control = np.vstack([straight, _arc(1.0, 20) + [4.0, 0.0]])
+    result = smooth(control, ellipses=[], max_curvature=0.5, heading_rad=0.0, goals=control[-1:], goal_tolerance_m=0.01,
+                    **BOUNDS)
+    assert not result.verification.ok
+    where = float(result.verification.reason.split(", ")[-1].split(" m along")[0])
+    assert 3.8 <= where <= 4.0 + np.pi / 2 + 0.2, result.verification.reason
+
+
 def test_curve_entering_an_ellipse_is_rejected_even_between_control_points():
     # The curve cuts the control polygon's corner; a small disc sits in that corner, clear of every
     # control point and of the polygon, but not of the curve.
