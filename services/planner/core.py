@@ -197,6 +197,7 @@ def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bo
     return bool(np.all(lead >= bounds_min) and np.all(lead <= bounds_max)
                 and not len(intersected(lead, ellipses, level=level)))
 
+
 def plan_path(
     *,
     start: FloatArray,
