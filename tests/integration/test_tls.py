@@ -203,9 +203,12 @@ def test_the_router_grants_exactly_the_wiring_tables_least_privilege(deployment)
             tokens.clear()
         own = [session.liveliness().declare_token(alive_key(PREFIX, name)) for name, session in sessions.items()]
         time.sleep(SETTLE_S)
-        asked = {name: {stage_of_alive_key(PREFIX, str(reply.ok.key_expr))
-                        for reply in session.liveliness().get(alive_key(PREFIX), timeout=SETTLE_S) if reply.ok is not None}
-                 for name, session in sessions.items()}
+        # Every session asks at once, and each is read once its query has ended (at the timeout at the
+        # latest): on a loaded machine an answer may take seconds.
+        asking = {name: session.liveliness().get(alive_key(PREFIX), timeout=QUERY_TIMEOUT_S)
+                  for name, session in sessions.items()}
+        asked = {name: {stage_of_alive_key(PREFIX, str(reply.ok.key_expr)) for reply in answers if reply.ok is not None}
+                 for name, answers in asking.items()}
         with lock:
             watched = {name: tokens.get(name, set()) for name in names}
         for token in own:
