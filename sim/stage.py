@@ -341,10 +341,11 @@ class SimStage:
         for stage, alive in self._changes:
             if not alive:
                 if stage not in core.missing:
-                    logger.warning("stage %s is down: braking until it is back and a fresh plan arrives", stage)
+                    logger.warning("stage %s is down at t = %.2f s: braking until it is back and a fresh plan arrives",
+                                   stage, core.t_s)
                 core.stage_lost(stage)
             elif stage in core.missing:
-                logger.warning("stage %s is back", stage)
+                logger.warning("stage %s is back at t = %.2f s", stage, core.t_s)
                 core.stage_back(stage)
                 self.back_at_s = now_s
         self._changes.clear()
