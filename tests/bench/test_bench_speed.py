@@ -1,5 +1,6 @@
 """pytest-benchmark timings of the fit and the plan. CI runs them once as plain tests
-(`--benchmark-disable` in addopts); `pytest tests/bench --benchmark-enable` times them."""
+(`--benchmark-disable` in addopts); `pytest tests/bench --benchmark-enable -n 0` times them (pytest-benchmark
+times nothing under xdist's workers)."""
 
 from __future__ import annotations
 
