@@ -21,7 +21,7 @@ from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
-from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start
+from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start, why_no_path
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
@@ -160,5 +160,5 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -
         raw_path=plan.points.tolist(),
         ellipsoids=[ellipse_to_model(e) for e in grown],
         timings_ms=PlanTimings(**clock.ms),
-        reason="" if ok else (plan.reason if smoothed is None else smoothed.verification.reason),
+        reason="" if ok else why_no_path(plan, smoothed, max_curvature=scenario.max_curvature),
     )

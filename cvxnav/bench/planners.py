@@ -59,13 +59,14 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     ellipses (`EllipseStack`) included: the stacks kept from the last call are dropped first.
     """
     from cvxnav.plan import plan_on_model
+    from services.planner.core import why_no_path
 
     EllipseStack.forget()
     t0 = time.perf_counter()
     plan, smoothed = plan_on_model(problem.scenario, problem.grown)
     elapsed = time.perf_counter() - t0
     if smoothed is None or not smoothed.verification.ok:
-        why = plan.reason if smoothed is None else smoothed.verification.reason
+        why = why_no_path(plan, smoothed, max_curvature=problem.scenario.max_curvature)
         return Attempt(path=None, time_s=elapsed, reason=f"cvxnav: no_path ({why})")
     return Attempt(path=smoothed.points, time_s=elapsed)
 

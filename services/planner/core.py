@@ -381,3 +381,18 @@ def plan_within(
         fallback = Attempted(plan, smoothed)
     assert fallback is not None  # the first attempt is never skipped
     return fallback
+
+
+def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: float) -> str:
+    """Why `plan_until_verified` found no verified path: the plan's reason, or its curve's verdict. A curve
+    too sharp within a turning radius of the start means that no route found could be joined from the
+    start's heading in the room there (the turning lead-ins included), and the reason says so."""
+    if smoothed is None:
+        return plan.reason
+    verdict = smoothed.verification
+    radius = 1.0 / max_curvature
+    # The verdict tests clearance first: a clear curve that failed above the bound failed on its curvature.
+    if verdict.min_level > 1.0 and verdict.max_curvature > max_curvature and verdict.sharpest_m <= radius:
+        return (f"{verdict.reason}: within a turning radius ({radius:.2f} m) of the start, no route found turns "
+                "off the start's heading in the room there, and a plan never reverses")
+    return verdict.reason

@@ -41,6 +41,7 @@ class Verification:
     min_level: float  # lower bound of ‖A z + b‖ over the curve and all ellipses (> 1: clear)
     max_curvature: float
     reason: str = ""
+    sharpest_m: float = 0.0  # how far along the curve its curvature is largest
 
 
 @dataclass(frozen=True)
@@ -148,7 +149,7 @@ def _judge(
     when the caller knows one (a chord's ends span its box); else the bounds are checked on the samples."""
 
     def fail(reason: str) -> Verification:
-        return Verification(False, min_level, max_kappa, reason)
+        return Verification(False, min_level, max_kappa, reason, sharpest_m)
 
     if not min_level > 1.0:  # (NaN fails)
         return fail(f"curve enters an ellipse (level {min_level:.4f} <= 1)")
@@ -181,7 +182,7 @@ def _judge(
         if not distances[first] <= goal_tolerance_m:  # (NaN included)
             return fail(f"curve misses goal {k} by {distances.min():.3f} m")
         cursor += first
-    return Verification(True, min_level, max_kappa)
+    return Verification(True, min_level, max_kappa, sharpest_m=sharpest_m)
 
 
 def sample(curve: BSpline, *, spacing_m: float, dense: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:

@@ -102,6 +102,25 @@ def test_enclosed_goal_is_reported_as_no_path(paper, tmp_path):
     assert plan.timings_ms.total < 5000  # the issue's bound: no_path is concluded quickly
 
 
+def test_a_car_facing_back_down_a_corridor_too_narrow_to_turn_in_is_told_so(paper, tmp_path):
+    """A 3 m corridor (1.7 m free of the grown walls) and a turning radius of 2.96 m: the car faces away
+    from its goal and cannot turn round without reversing, which a plan never does. Facing the goal, the
+    same query plans."""
+    walls = [[[-2.0, 1.5], [20.0, 1.5], [20.0, 1.7], [-2.0, 1.7]], [[-2.0, -1.7], [20.0, -1.7], [20.0, -1.5], [-2.0, -1.5]]]
+    corridor = dict(paper, goals=[[15.0, 0.0]], bounds={"min": [-3, -3], "max": [21, 3]},
+                    obstacles=[{"type": "polygon", "vertices": w} for w in walls])
+    back = dict(corridor, name="facing-back", start={"x": 5.0, "y": 0.0, "theta": np.pi}, expect="no_path")
+    done = cvxnav("plan", str(_write(tmp_path / "back.json", back)), "--out", "back.json", cwd=tmp_path)
+    assert done.returncode == 3, done.stderr
+    plan = PlanFile.read(tmp_path / "back.json")
+    assert plan.status == "no_path" and plan.path == []
+    assert "within a turning radius (2.96 m) of the start" in plan.reason and "never reverses" in plan.reason
+    ahead = dict(corridor, name="facing-ahead", start={"x": 5.0, "y": 0.0, "theta": 0.0}, expect="reach")
+    done = cvxnav("plan", str(_write(tmp_path / "ahead.json", ahead)), "--out", "ahead.json", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert PlanFile.read(tmp_path / "ahead.json").status == "ok"
+
+
 @pytest.mark.parametrize(
     "edit, field",
     [
