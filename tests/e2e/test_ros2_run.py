@@ -327,26 +327,30 @@ def test_a_map_servers_map_on_map_is_planned_round_with_the_robots_margin(shared
         map_in = threading.Event()  # the bridge has sent the pipeline its Map
         map_key = graph.session.declare_subscriber(key(PREFIX, "map"), lambda sample: map_in.set())
         with run_ros2(DEPOT, endpoint=endpoint, graph=graph, cwd=tmp_path) as run:
-            deadline, t_s = time.monotonic() + 120.0, 1000.0
-            # The robot stands and reports its odometry, its laser off, until the map is in the pipeline: a
-            # scan planned before then (the latched /map reaches a bridge just started after a few scans on
-            # a loaded machine) is planned on what the laser saw alone (docs/ros2.md). Then two more
-            # odometries, so the ellipsoid stage knows where the robot is when the first scan arrives.
-            while not map_in.is_set() and time.monotonic() < deadline:
-                t_s += 0.1
-                publishers["odom"].put(odometry(x=start.x, y=start.y, yaw=start.theta, t_s=t_s))
+            deadline, clock = time.monotonic() + 120.0, {"t": 1000.0}
+
+            def stand(*, laser: bool) -> None:
+                """A tenth of a second of the robot standing at the start: its odometry, and with the laser
+                on a scan that sees nothing."""
+                clock["t"] += 0.1
+                publishers["odom"].put(odometry(x=start.x, y=start.y, yaw=start.theta, t_s=clock["t"]))
+                if laser:
+                    publishers["scan"].put(laser_scan(np.full(scenario.sensor.rays, np.inf), t_s=clock["t"],
+                                                      angle_min=-math.pi / 2,
+                                                      angle_increment=math.pi / scenario.sensor.rays))
                 time.sleep(0.1)
+
+            # The robot stands, its laser off, until the map is in the pipeline: a scan planned before then
+            # (the latched /map reaches a bridge just started after a few scans on a loaded machine) is
+            # planned on what the laser saw alone (docs/ros2.md). Then two more odometries, so the ellipsoid
+            # stage knows where the robot is when the first scan arrives.
+            while not map_in.is_set() and time.monotonic() < deadline:
+                stand(laser=False)
             assert map_in.is_set(), "the bridge never sent the map"
             for _ in range(2):
-                t_s += 0.1
-                publishers["odom"].put(odometry(x=start.x, y=start.y, yaw=start.theta, t_s=t_s))
-                time.sleep(0.1)
+                stand(laser=False)
             while len(graph.of("plan")) < 3 and time.monotonic() < deadline:
-                t_s += 0.1  # the robot stands at the start; its laser sees nothing
-                publishers["odom"].put(odometry(x=start.x, y=start.y, yaw=start.theta, t_s=t_s))
-                publishers["scan"].put(laser_scan(np.full(scenario.sensor.rays, np.inf), t_s=t_s, angle_min=-math.pi / 2,
-                                                  angle_increment=math.pi / scenario.sensor.rays))
-                time.sleep(0.1)
+                stand(laser=True)
             code, log = stop_run(run, cwd=tmp_path)
         map_key.undeclare()
         node.close()
