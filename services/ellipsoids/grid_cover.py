@@ -59,6 +59,7 @@ cv2.setNumThreads(1)
 
 _PROOF_MARGIN = 1e-9  # every corner's computed level stays this far below 1 (rounding is < 1e-12)
 _GOLDEN_RAD = math.pi * (3.0 - math.sqrt(5.0))  # sunflower samples of a disc
+_EXACT_CELLS = 1_200.0  # a distance window is the exact distance's rounding up to this many cells (`_window`)
 
 
 @dataclass(frozen=True)
@@ -206,7 +207,10 @@ class GridCover:
         # 0.5 of the whole number below 1 200 cells, so the root of the rounded square (single precision:
         # correctly rounded) is the rounding of the exact distance, the same every time. (Further away a
         # neighbouring whole number moves the distance by under 1/2 400 of a cell, far above `reach_cells`.)
+        # A window with no blocked cell gets 2⁶⁴ everywhere, whose square overflows: distances are capped
+        # where they are no longer exact, which keeps them above `reach_cells`.
         cells = cv2.distanceTransform(free.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[k:-k, k:-k]
+        np.minimum(cells, max(_EXACT_CELLS, self.reach_cells), out=cells)
         cells = np.sqrt(np.rint(cells * cells))
         edt = cells.astype(float) * self.grid.resolution_m - 0.5 * self.grid.resolution_m
         return DistanceWindow(row0=r0, col0=c0, distance=np.maximum(edt, 0.0, out=edt).astype(np.float32))

@@ -5,6 +5,7 @@ sum with the margin disc, and the thin-ellipse trap avoided."""
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,18 @@ def test_a_distance_window_is_the_rounding_of_the_exact_distance_on_every_call()
     assert np.array_equal(first.distance[near], exact.astype(np.float32)[near])
     for _ in range(5):
         assert np.array_equal(cover._window(group).distance, first.distance)
+
+
+def test_a_tile_far_from_every_blocked_cell_has_no_pieces_and_a_finite_window():
+    """Open floor wider than a window (a hall, a yard): OpenCV's transform of a window with no blocked cell
+    is 2⁶⁴ everywhere, which once overflowed to infinity with a RuntimeWarning on the user's terminal."""
+    blocked = np.zeros((400, 400), dtype=bool)
+    blocked[5, 5] = True
+    cover = GridCover(OccupancyGrid.from_mask(blocked, resolution_m=0.05), margin_m=0.45)
+    middle = (cover.tiles_shape[0] // 2, cover.tiles_shape[1] // 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert cover.pieces([middle]) == []
+    distance = cover.windows[-1].distance
+    assert np.isfinite(distance).all()
+    assert distance.min() > (cover.reach_cells - 2) * 0.05  # above the margin plus the tolerance everywhere
