@@ -631,6 +631,7 @@ def refine(
 
 
 _MET_SLACK = 1e-6  # a curvature slack at most this is a met bound (as `plan_path` takes it)
+_STUCK_FACTOR = 0.9  # a widened window's unmet slack at least this × its narrower ones' is not widened again
 _ALONG_COS = math.cos(1e-6)  # a first step within 1e-6 rad of the heading is along it
 _PIN_TOLERANCE_M = 0.02  # a window's path this close to the route near a pinned end has come back onto it
 
@@ -660,8 +661,10 @@ def refine_in_windows(
     pinned ends and the curvature bound holds across every join. A window whose curvature bound is not
     met, or whose path still moves off the route near a pinned end (the pins, not the turn, decided it
     there), is widened, by twice as much each time, and merged with the windows it reaches; one that
-    reaches the whole route is the whole refinement (`refine` without windows). The caller verifies the
-    path whole, as any refined path.
+    reaches the whole route is the whole refinement (`refine` without windows). A widened window that
+    meets its bound no better than the narrower ones it grew from is not widened again (`_stuck`): the
+    result keeps its slack, and the caller tries another route. The caller verifies the path whole, as
+    any refined path.
     """
     whole = replace(settings, window_radii=None)
     total = sum(polyline_length(leg) for leg in legs)
@@ -697,8 +700,8 @@ def refine_in_windows(
                 solved[a, b] = _refine_window(z, a, b, goal_indices=goal_indices, ellipses=ellipses,
                                               bounds_min=bounds_min, bounds_max=bounds_max,
                                               max_curvature=max_curvature, heading_rad=heading_rad, settings=whole)
-        unmet = [solved[a, b].curvature_slack > _MET_SLACK or _held_by_its_ends(z, a, b, solved[a, b].points, reach)
-                 for a, b in spans]
+        unmet = [(solved[a, b].curvature_slack > _MET_SLACK and not _stuck(solved, a, b))
+                 or _held_by_its_ends(z, a, b, solved[a, b].points, reach) for a, b in spans]
         if not any(unmet):
             break
         widen *= 2.0
@@ -724,6 +727,16 @@ def refine_in_windows(
         iterations=sum(solved[span].iterations for span in spans),
         curvature_slack=max(solved[span].curvature_slack for span in spans),
     )
+
+
+def _stuck(solved: dict[tuple[int, int], Refined], a: int, b: int) -> bool:
+    """Whether window a … b, widened from narrower windows whose curvature bound was unmet, met it no
+    better: its slack is not down by a tenth on the largest of theirs. Its turn is not one the pins made
+    (a car facing away from every route, with no room to turn round), and widening it further only
+    refines more of the route to the same slack, the whole route at last."""
+    inner = [r.curvature_slack for (lo, hi), r in solved.items()
+             if a <= lo and hi <= b and (lo, hi) != (a, b) and r.curvature_slack > _MET_SLACK]
+    return bool(inner) and solved[a, b].curvature_slack >= _STUCK_FACTOR * max(inner)
 
 
 def _merged(intervals: list[tuple[float, float]], *, gap: float) -> list[tuple[float, float]]:

@@ -496,3 +496,24 @@ def test_a_robot_whose_goals_are_all_at_its_start_stays_there():
     assert smoothed.verification.ok and smoothed.verification.min_level == pytest.approx(3.0)
     _, inside = stay_at_start(np.array([4.5, 2.0]), [Ellipse.from_axes(center=(4.0, 2.0), semi_axes=(1.0, 1.0))])
     assert not inside.verification.ok and "inside" in inside.verification.reason
+
+
+def test_a_start_window_that_widening_does_not_help_is_not_widened_to_the_whole_route():
+    """A car facing back down a 60 m corridor 1.8 m wide, with a turning radius of 1.03 m: no window
+    round the start meets the curvature bound (turning round takes 2.06 m). The start's window, widened
+    once to no better slack, is left as it is: the result reports the unmet bound, and the route beyond
+    the window keeps its own points, where the whole route used to be refined (seconds on a building's
+    map) to the same slack."""
+    from services.planner.refine import refine
+
+    walls = [Ellipse.from_axes(center=[30.0, 1.5], semi_axes=[40.0, 0.6]),
+             Ellipse.from_axes(center=[30.0, -1.5], semi_axes=[40.0, 0.6])]
+    box = dict(bounds_min=np.array([-12.0, -3.0]), bounds_max=np.array([72.0, 3.0]))
+    start, goals = np.array([0.0, 0.0]), np.array([[60.0, 0.0]])
+    legs = tangent_route(start=start, goals=goals, ellipses=walls, level=RefineSettings().level, **box)
+    windowed = refine(legs=legs, ellipses=walls, max_curvature=1.0, heading_rad=np.pi,
+                      settings=RefineSettings(window_radii=2.0), **box)
+    assert windowed.curvature_slack > 1e-6
+    route, _ = resample_legs(legs, n=int(np.ceil(polyline_length(np.vstack(legs)) / RefineSettings().spacing_m)) + 1)
+    beyond = route[route[:, 0] > 30.0]
+    assert len(beyond) > 300 and all(np.any(np.all(windowed.points == point, axis=1)) for point in beyond)
