@@ -27,6 +27,8 @@ the least excess. A piece whose excess is above the tolerance is split in two ac
 (the recursive bisection of `services.ellipsoids.cover`), so long walls end up as a few long ellipses
 and corners, wall ends and door jambs as short ones: the count follows the outline, not the cells.
 Every piece of one level of the bisection is fitted, judged and split in one batch of array operations.
+A piece that holds a start or goal (which may lie within the tolerance of the grown region) is fitted
+again at smaller tolerances until none does (`GridCover.tighten`).
 
 Tiles. The grid (with the ring of blocked cells round it: beyond the map is unknown) is cut into square
 tiles, fitted when a plan first asks for them (`GridCover.pieces`) and kept. The tiles asked for at once
@@ -59,6 +61,8 @@ cv2.setNumThreads(1)
 
 _PROOF_MARGIN = 1e-9  # every corner's computed level stays this far below 1 (rounding is < 1e-12)
 _GOLDEN_RAD = math.pi * (3.0 - math.sqrt(5.0))  # sunflower samples of a disc
+# Tolerances a piece holding a start or goal is refitted at in turn (`GridCover.tighten`).
+_TIGHTER_M = (0.05, 0.025, 0.0125)
 _EXACT_CELLS = 1_200.0  # a distance window is the exact distance's rounding up to this many cells (`_window`)
 
 
@@ -161,6 +165,47 @@ class GridCover:
             self._fit_blocks(_blocks(missing))
         return [piece for t in wanted for piece in self.fitted[t]]
 
+    def tighten(self, points: FloatArray, *, tolerances_m: tuple[float, ...] = _TIGHTER_M) -> bool:
+        """Refit the fitted pieces whose grown ellipse holds one of the world points, at each of the smaller
+        tolerances in turn, until none does; whether any piece was refitted.
+
+        A start or goal in free space may lie within the tolerance of the grown blocked region (a goal
+        set 2 cm beyond the margin from a wall): the cover, up to `tolerance_m` more conservative than
+        the region, would hold it, and no plan could start or end there. Refitted, the same cells are
+        covered (each new piece proved as every piece is), by more and tighter ellipses where the points
+        are; a point truly within the margin of a blocked cell stays inside at every tolerance.
+        """
+        points = np.atleast_2d(np.asarray(points, dtype=float))
+        changed = False
+        for tolerance in tolerances_m:
+            pieces = [(tile, piece) for tile, kept in self.fitted.items() for piece in kept]
+            if not pieces:
+                break
+            Ab = np.array([piece.grown_Ab for _, piece in pieces])  # (k, 2, 3)
+            u = np.einsum("kij,pj->kpi", Ab[:, :, :2], points) + Ab[:, None, :, 2]
+            holds = np.any(np.einsum("kpi,kpi->kp", u, u) <= 1.0, axis=1)
+            holding = [pieces[k] for k in np.flatnonzero(holds).tolist()]
+            if not holding:
+                break
+            for tile, piece in holding:
+                self.fitted[tile].remove(piece)
+                for made in self._refit(piece.cells, tolerance=tolerance):
+                    self.fitted[self._tile_of(made.cells[0])].append(made)
+            changed = True
+        return changed
+
+    def _refit(self, cells: IntArray, *, tolerance: float):
+        """One piece's cells fitted again to `tolerance`, on a distance transform over their tiles, each
+        new piece kept within those tiles and their halo (as the tiles' own pieces are)."""
+        group = sorted({self._tile_of(cell) for cell in cells})
+        window = self._window(group)
+        ranges = [self.tile_range(t) for t in group]
+        box = (min(r.start for r, _ in ranges) - self.halo_cells, max(r.stop for r, _ in ranges) + self.halo_cells,
+               min(c.start for _, c in ranges) - self.halo_cells, max(c.stop for _, c in ranges) + self.halo_cells)
+        where = (0, window.row0, window.col0, window.distance.shape[1])
+        yield from self._bisect(cells, np.zeros(len(cells), dtype=np.intp), np.array([box + where]),
+                                window.distance.reshape(-1), tolerance=tolerance)
+
     # ------------------------------------------------------------------ one batch of tiles
 
     def _fit_blocks(self, groups: list[list[Tile]]) -> None:
@@ -244,16 +289,19 @@ class GridCover:
     def _tile_of(self, cell: IntArray) -> Tile:
         return (int(cell[0] + 1) // self.tile_cells, int(cell[1] + 1) // self.tile_cells)
 
-    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32]):
+    def _bisect(self, cells: IntArray, piece: IntArray, boxes: IntArray, distance: NDArray[np.float32], *,
+                tolerance: float | None = None):
         """Fit, judge and split every piece of a level at once, level after level; yields the pieces taken
         (in the order of their levels), proved and made in one batch after the last level (`_accepted`).
-        `distance`: the windows' distances, one after another (each piece's box says where its window is)."""
-        tolerance, res = self.settings.tolerance_m, self.grid.resolution_m
+        `distance`: the windows' distances, one after another (each piece's box says where its window is).
+        `tolerance`: the largest excess taken (the settings' unless given)."""
+        tolerance = self.settings.tolerance_m if tolerance is None else tolerance
+        res = self.grid.resolution_m
         taken: list[_Taken] = []  # each level's accepted pieces
         while len(cells):
             fit = _fit_boxes(cells, piece, res=res)
             self.fit_count += fit.count
-            p, grown, excess = self._grow(fit, distance, boxes)
+            p, grown, excess = self._grow(fit, distance, boxes, tolerance=tolerance)
             side = _sides(cells, piece, fit)
             below = np.bincount(piece, weights=side, minlength=fit.count)
             splittable = (below > 0) & (below < fit.count_cells)
@@ -277,7 +325,8 @@ class GridCover:
         if taken:
             yield from self._accepted(taken)
 
-    def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray, *,
+              tolerance: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Each piece's growth parameter, grown semi-axes (P, 2) and excess, the least-excess growth among
         `growths` values of p per piece.
 
@@ -298,7 +347,7 @@ class GridCover:
         best = np.argmin(bound, axis=1)
         take = np.arange(P)
         excess = bound[take, best] - r
-        near = np.flatnonzero(excess <= self.settings.tolerance_m)
+        near = np.flatnonzero(excess <= tolerance)
         if len(near):
             chosen = (fit.centre[near], fit.axes[near], grown[near, best[near]], boxes[near], distance)
             edge_and_inner = _sample_max(*chosen, res=res, step_cells=1.0, interior=False, interior_step_cells=2.0)

@@ -12,7 +12,8 @@ what the query can use is built:
    coarse graph keeps every coarse cell a path can use and every step between neighbours it can take:
    when it has no path, no path exists at all, and the planner says so. Its answer is the shortest path
    and the corridor round it: every coarse cell on a path at most `slack` longer.
-2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor. Fitting
+2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor, its pieces
+   that hold the start or a goal fitted again tighter (`GridCover.tighten`). Fitting
    them computes the distance transform there, which tells the coarse cells there apart more finely (a
    coarse cell is kept only if one of its cells is within half a cell's diagonal of being r clear, which
    still keeps every cell a path can use); the coarse search runs again, and again, until its corridor
@@ -369,7 +370,7 @@ def plan_in_corridor(
         plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
         return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, searches, 0)
     with timer("fit"):
-        fitted = cover.pieces(tiles)
+        fitted = _pieces(cover, tiles, waypoints)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
         keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
                    if settings.keep_to_corridor else None)
@@ -385,7 +386,7 @@ def plan_in_corridor(
                 new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
                 if new:
                     tiles |= new
-                    fitted = cover.pieces(tiles)
+                    fitted = _pieces(cover, tiles, waypoints)
                 planned = {id(piece) for piece in used}
                 others = [piece for piece in fitted if id(piece) not in planned]
                 hit = _met(_grown_stack(others), plan, smoothed)
@@ -439,6 +440,13 @@ class _Corridor:
         rows, cols = self.off.shape
         c[:, 0], c[:, 1] = np.clip(c[:, 0], 0, cols - 1), np.clip(c[:, 1], 0, rows - 1)
         return ~np.logical_or.reduceat(self.off[c[:, 1], c[:, 0]], offsets)
+
+
+def _pieces(cover: GridCover, tiles: set, waypoints: FloatArray) -> list[GridPiece]:
+    """The tiles' pieces, those holding the start or a goal refitted tighter first (`GridCover.tighten`)."""
+    cover.pieces(tiles)
+    cover.tighten(waypoints)
+    return cover.pieces(tiles)
 
 
 def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:

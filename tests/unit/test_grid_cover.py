@@ -178,3 +178,27 @@ def test_a_tile_far_from_every_blocked_cell_has_no_pieces_and_a_finite_window():
     distance = cover.windows[-1].distance
     assert np.isfinite(distance).all()
     assert distance.min() > (cover.reach_cells - 2) * 0.05  # above the margin plus the tolerance everywhere
+
+
+def test_a_goal_just_beyond_the_margin_is_let_out_of_the_cover_and_every_border_cell_stays_covered():
+    """A point 2 cm further from a straight wall than the margin lies in the wall's grown ellipses, which
+    may stick out of the grown wall by the tolerance (0.1 m): no plan could start or end there. The pieces
+    holding it are refitted tighter; then none holds it, the wall is covered as before (every border cell
+    proved inside a fitted ellipse), and the pieces away from it are the same. A point within the margin
+    stays held."""
+    grid = _wall(12.0, thickness_cells=2)  # the wall's face at y = 2.1 m
+    cover = GridCover(grid, margin_m=0.45)
+    before = _all_pieces(cover)
+    goal = np.array([[7.5, 2.1 + 0.45 + 0.02]])
+    holding = [p for p in before if np.linalg.norm(p.grown.A @ goal[0] + p.grown.b) <= 1.0]
+    assert holding
+    assert cover.tighten(goal)
+    after = _all_pieces(cover)
+    assert all(np.linalg.norm(p.grown.A @ goal[0] + p.grown.b) > 1.0 for p in after)
+    assert _proved(grid, after).all()
+    assert {id(p) for p in before} - {id(p) for p in holding} <= {id(p) for p in after}
+    assert len(after) - len(before) < 30  # tighter only where the goal is
+    within = np.array([[7.5, 2.1 + 0.3]])
+    cover.tighten(within)
+    assert any(np.linalg.norm(p.grown.A @ within[0] + p.grown.b) <= 1.0 for p in _all_pieces(cover))
+    assert _proved(grid, _all_pieces(cover)).all()
