@@ -37,6 +37,8 @@ class PathPlan:
     goal_indices: tuple[int, ...] = ()
     reason: str = ""
     iterations: int = 0
+    # No route refined clear: by how far along it the refined path that ran furthest clear entered an ellipse.
+    entered_m: float | None = None
 
 
 def goals_ahead(start: FloatArray, goals: FloatArray, *, tolerance_m: float) -> FloatArray:
@@ -191,6 +193,13 @@ def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: fl
     return out
 
 
+def _entered_m(points: FloatArray, stack: EllipseStack) -> float:
+    """How far along the polyline its first segment that enters an ellipse ends (eq. 2, exact)."""
+    rows, _, levels = stack.segment_pairs(points[:-1], points[1:])
+    first = int(np.min(rows[levels < 1.0]))
+    return float(np.sum(np.linalg.norm(np.diff(points[: first + 2], axis=0), axis=1)))
+
+
 def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bounds_max: FloatArray, *,
            level: float) -> bool:
     """Whether a lead-in stays within the bounds and outside every ellipse (at `level`)."""
@@ -259,6 +268,7 @@ def plan_path(
     tries.append((None, radius))
     best: PathPlan | None = None
     best_slack = np.inf
+    entered_m = None
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = _route(
             start=start,
@@ -295,6 +305,7 @@ def plan_path(
                 best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
             continue
         if len(intersected(refined.points, ellipses)):
+            entered_m = max(entered_m or 0.0, _entered_m(refined.points, stack))
             continue
         if refined.curvature_slack < best_slack:
             best_slack = refined.curvature_slack
@@ -302,7 +313,8 @@ def plan_path(
         if refined.curvature_slack <= 1e-6 or late():
             break
     if best is None:
-        return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses")
+        return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses",
+                        entered_m=entered_m)
     return best
 
 
@@ -385,14 +397,21 @@ def plan_within(
 
 def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: float) -> str:
     """Why `plan_until_verified` found no verified path: the plan's reason, or its curve's verdict. A curve
-    too sharp within a turning radius of the start means that no route found could be joined from the
-    start's heading in the room there (the turning lead-ins included), and the reason says so."""
+    too sharp within a turning radius of the start, or refined routes that all enter an ellipse there,
+    mean that no route found could be joined from the start's heading in the room there (the turning
+    lead-ins included), and the reason says so."""
+    radius = 1.0 / max_curvature
     if smoothed is None:
+        if plan.entered_m is not None and plan.entered_m <= radius:
+            return (f"{plan.reason} (each enters one within {plan.entered_m:.2f} m of the start): {_at_start(radius)}")
         return plan.reason
     verdict = smoothed.verification
-    radius = 1.0 / max_curvature
     # The verdict tests clearance first: a clear curve that failed above the bound failed on its curvature.
     if verdict.min_level > 1.0 and verdict.max_curvature > max_curvature and verdict.sharpest_m <= radius:
-        return (f"{verdict.reason}: within a turning radius ({radius:.2f} m) of the start, no route found turns "
-                "off the start's heading in the room there, and a plan never reverses")
+        return f"{verdict.reason}: {_at_start(radius)}"
     return verdict.reason
+
+
+def _at_start(radius: float) -> str:
+    return (f"within a turning radius ({radius:.2f} m) of the start, no route found turns off the start's heading "
+            "in the room there, and a plan never reverses")

@@ -517,3 +517,18 @@ def test_a_start_window_that_widening_does_not_help_is_not_widened_to_the_whole_
     route, _ = resample_legs(legs, n=int(np.ceil(polyline_length(np.vstack(legs)) / RefineSettings().spacing_m)) + 1)
     beyond = route[route[:, 0] > 30.0]
     assert len(beyond) > 300 and all(np.any(np.all(windowed.points == point, axis=1)) for point in beyond)
+
+
+def test_a_car_2_cm_from_an_obstacle_and_facing_it_is_told_why_no_route_refines_clear():
+    """The car stands 2 cm outside a grown obstacle, facing its centre, the goal behind it: every refined
+    route's first step is along the heading, into the obstacle. The reason says where, and that the car
+    cannot turn off its heading there (as for a curve too sharp at the start)."""
+    from services.planner.core import why_no_path
+
+    disc = Ellipse.circle(center=[0.0, 0.0], radius=1.0)
+    plan = plan_path(start=np.array([1.02, 0.0]), heading_rad=np.pi, goals=np.array([[10.0, 0.0]]),
+                     ellipses=[disc], max_curvature=1.0, **BOX)
+    assert plan.status == "no_path" and plan.entered_m is not None and plan.entered_m <= 0.2
+    reason = why_no_path(plan, None, max_curvature=1.0)
+    assert reason.startswith("no refined route stays clear of the ellipses (each enters one within")
+    assert "within a turning radius (1.00 m) of the start" in reason and "never reverses" in reason
