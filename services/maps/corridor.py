@@ -33,7 +33,10 @@ what the query can use is built:
    have failed on a turn through a wall mass no tile of which was fitted, and is made again with the
    ellipses it met. A search kept to the corridor that finds nothing (or nothing drivable, meeting no
    other ellipse) is made again without it; one without it that finds no route among some of the
-   ellipses proves there is none among all of them.
+   ellipses proves there is none among all of them — in this cover. Once, the pieces holding the
+   points of the coarse route that are the margin clear of every blocked cell are then fitted again
+   tighter (`GridCover.tighten`) and the plan made again: a door a few centimetres wider than the
+   robot's passage is open to the coarse grid and closed by the cover's tolerance.
 """
 
 from __future__ import annotations
@@ -375,6 +378,7 @@ def plan_in_corridor(
         keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
                    if settings.keep_to_corridor else None)
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
+    corridor, tightened = keep_to, False
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
         plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to)
@@ -396,6 +400,17 @@ def plan_in_corridor(
             if smoothed is not None and smoothed.verification.ok:
                 break
         if keep_to is None:
+            # No route among the ellipses, or none refined clear: the cover, up to its tolerance more
+            # conservative than the grown walls, may close a gap the coarse route passes through clear of
+            # them. Its pieces there are fitted again tighter, once, and the plan made again.
+            if plan.status == "no_path" and not tightened:
+                tightened = True
+                with timer("fit"):
+                    if cover.tighten(_clear_along(cover, coarse)):
+                        fitted = cover.pieces(tiles)
+                        used = _renewed(used, fitted, line, settings.near_m)
+                        keep_to = corridor
+                        continue
             break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
     return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, keep_to is not None)
@@ -447,6 +462,21 @@ def _pieces(cover: GridCover, tiles: set, waypoints: FloatArray) -> list[GridPie
     cover.pieces(tiles)
     cover.tighten(waypoints)
     return cover.pieces(tiles)
+
+
+def _clear_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
+    """The coarse route's points, 5 cm apart, that are at least the margin from every blocked cell."""
+    points = _densify(coarse.points, 0.05)
+    return points[cover.grid.clearance(points) >= cover.margin_m]
+
+
+def _renewed(used: list[GridPiece], fitted: list[GridPiece], line: FloatArray, near_m: float) -> list[GridPiece]:
+    """The pieces planned among once some were fitted again: those still in the cover, then the fitted
+    ones near the corridor not among them (the new pieces where the old were)."""
+    present = {id(piece) for piece in fitted}
+    kept = [piece for piece in used if id(piece) in present]
+    have = {id(piece) for piece in kept}
+    return kept + [fitted[k] for k in sorted(_near(fitted, line, near_m)) if id(fitted[k]) not in have]
 
 
 def _uncovered(pieces: list[GridPiece], *, samples: int = 64) -> list[int]:

@@ -81,6 +81,24 @@ def test_a_door_just_wide_enough_is_open_on_the_coarse_grid_and_the_plan_goes_th
     assert scenario.clearance(path).min() >= MARGIN - 0.02
 
 
+def test_a_door_the_cover_closes_by_its_tolerance_is_opened_where_the_coarse_route_goes_through():
+    """A door 1.0 m wide for a passage of 0.9 m: 5 cm to spare on each side, less than the cover's
+    tolerance (0.1 m), by which the jambs' grown ellipses closed it ("every route to the goals is
+    blocked"). The pieces holding the coarse route's clear points are fitted again tighter, and the plan
+    goes through, clear of every ellipse of the cover it was made on and of the walls by the margin."""
+    door = 2 * MARGIN + 0.1
+    scenario = _scenario(_room(door))
+    found, cover = _corridor_plan(scenario)
+    assert found.plan.status == "ok" and found.smoothed.verification.ok
+    path = found.smoothed.points
+    crossing = path[np.argmin(np.abs(path[:, 0] - 6.0))]
+    assert abs(crossing[1] - 3.0) <= door / 2
+    nx, ny = cover.tiles_shape
+    stack = EllipseStack.of([p.grown for p in cover.pieces([(x, y) for x in range(nx) for y in range(ny)])])
+    assert np.min(stack.segment_levels(path[:-1], path[1:])) >= 1.0
+    assert scenario.clearance(path).min() >= MARGIN - 0.02
+
+
 def test_the_coarse_grid_keeps_every_cell_a_path_can_use():
     """Every free point at least the margin from the blocked cells lies in a passable coarse cell, before
     and after the distance transform of fitted tiles refines the coarse cells."""
