@@ -85,6 +85,7 @@ class GridPiece:
     p: float  # the Kurzhanski–Vályi parameter of the growth
     excess_m: float  # of the grown ellipse over the grown blocked region (sampled at cell centres)
     cells: IntArray  # (n, 2) column, row of the border cells it covers
+    tolerance_m: float  # the largest excess it was fitted to take (smaller once tightened)
 
     @cached_property
     def raw(self) -> Ellipse:
@@ -167,7 +168,8 @@ class GridCover:
 
     def tighten(self, points: FloatArray, *, tolerances_m: tuple[float, ...] = _TIGHTER_M) -> bool:
         """Refit the fitted pieces whose grown ellipse holds one of the world points, at each of the smaller
-        tolerances in turn, until none does; whether any piece was refitted.
+        tolerances in turn, until none does; whether any piece was refitted. A piece already fitted to a
+        tolerance is not refitted to it again (a point within the margin stays held by the tightest).
 
         A start or goal in free space may lie within the tolerance of the grown blocked region (a goal
         set 2 cm beyond the margin from a wall): the cover, up to `tolerance_m` more conservative than
@@ -183,15 +185,16 @@ class GridCover:
                 break
             Ab = np.array([piece.grown_Ab for _, piece in pieces])  # (k, 2, 3)
             u = np.einsum("kij,pj->kpi", Ab[:, :, :2], points) + Ab[:, None, :, 2]
-            holds = np.any(np.einsum("kpi,kpi->kp", u, u) <= 1.0, axis=1)
-            holding = [pieces[k] for k in np.flatnonzero(holds).tolist()]
+            holding = [pieces[k] for k in np.flatnonzero(np.any(np.einsum("kpi,kpi->kp", u, u) <= 1.0, axis=1))]
             if not holding:
                 break
             for tile, piece in holding:
+                if piece.tolerance_m <= tolerance:
+                    continue
                 self.fitted[tile].remove(piece)
                 for made in self._refit(piece.cells, tolerance=tolerance):
                     self.fitted[self._tile_of(made.cells[0])].append(made)
-            changed = True
+                changed = True
         return changed
 
     def _refit(self, cells: IntArray, *, tolerance: float):
@@ -323,7 +326,7 @@ class GridCover:
             cells, piece = cells[keep][order], halves[order]
             boxes = boxes[labels // 2]
         if taken:
-            yield from self._accepted(taken)
+            yield from self._accepted(taken, tolerance=tolerance)
 
     def _grow(self, fit: _Fits, distance: NDArray[np.float32], boxes: IntArray, *,
               tolerance: float) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -354,7 +357,7 @@ class GridCover:
             excess[near] = np.maximum(excess[near], edge_and_inner - r)
         return p[take, best], grown[take, best], excess
 
-    def _accepted(self, taken: list[_Taken]):
+    def _accepted(self, taken: list[_Taken], *, tolerance: float):
         """The pieces every level took, as world ellipses, each proved to contain its cells (see the module)."""
         def joined(name: str) -> np.ndarray:
             return np.concatenate([getattr(level, name) for level in taken])
@@ -388,7 +391,8 @@ class GridCover:
         raw_Ab = np.concatenate([A, -np.einsum("kij,kj->ki", A, centre)[:, :, None]], axis=2)
         grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
         for k, (pk, ek) in enumerate(zip(p.tolist(), excess.tolist())):
-            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=pk, excess_m=ek, cells=cells[k])
+            yield GridPiece(raw_Ab=raw_Ab[k], grown_Ab=grown_Ab[k], p=pk, excess_m=ek, cells=cells[k],
+                            tolerance_m=tolerance)
 
 
 class _Taken(NamedTuple):

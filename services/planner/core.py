@@ -413,5 +413,6 @@ def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: flo
 
 
 def _at_start(radius: float) -> str:
+    """What a failure within a turning radius of the start means."""
     return (f"within a turning radius ({radius:.2f} m) of the start, no route found turns off the start's heading "
             "in the room there, and a plan never reverses")

@@ -185,7 +185,7 @@ def test_a_goal_just_beyond_the_margin_is_let_out_of_the_cover_and_every_border_
     may stick out of the grown wall by the tolerance (0.1 m): no plan could start or end there. The pieces
     holding it are refitted tighter; then none holds it, the wall is covered as before (every border cell
     proved inside a fitted ellipse), and the pieces away from it are the same. A point within the margin
-    stays held."""
+    stays held, and asking again refits nothing."""
     grid = _wall(12.0, thickness_cells=2)  # the wall's face at y = 2.1 m
     cover = GridCover(grid, margin_m=0.45)
     before = _all_pieces(cover)
@@ -199,8 +199,9 @@ def test_a_goal_just_beyond_the_margin_is_let_out_of_the_cover_and_every_border_
     assert {id(p) for p in before} - {id(p) for p in holding} <= {id(p) for p in after}
     assert len(after) - len(before) < 30  # tighter only where the goal is
     within = np.array([[7.5, 2.1 + 0.3]])
-    cover.tighten(within)
+    assert cover.tighten(within)
     assert any(np.linalg.norm(p.grown.A @ within[0] + p.grown.b) <= 1.0 for p in _all_pieces(cover))
+    assert not cover.tighten(within)  # held by pieces fitted to the finest tolerance already: not refitted again
     assert _proved(grid, _all_pieces(cover)).all()
 
 
