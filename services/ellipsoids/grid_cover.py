@@ -141,6 +141,18 @@ class GridCover:
         rows, cols = self.grid.shape
         return slice(b * t - 1, min((b + 1) * t - 1, rows + 1)), slice(a * t - 1, min((a + 1) * t - 1, cols + 1))
 
+    def _extent(self, tiles: Iterable[Tile]) -> tuple[slice, slice]:
+        """(rows, columns) of the cells of the rectangle bounding the tiles."""
+        ranges = [self.tile_range(t) for t in tiles]
+        return (slice(min(r.start for r, _ in ranges), max(r.stop for r, _ in ranges)),
+                slice(min(c.start for _, c in ranges), max(c.stop for _, c in ranges)))
+
+    def _halo_box(self, rows: slice, cols: slice) -> tuple[int, int, int, int]:
+        """Rows r0…r1, columns c0…c1 of a rectangle of cells widened by the halo: where the grown
+        ellipses of its pieces must stay."""
+        h = self.halo_cells
+        return rows.start - h, rows.stop + h, cols.start - h, cols.stop + h
+
     def tiles_near(self, points: FloatArray, radius_m: float) -> set[Tile]:
         """Tiles whose cells come within `radius_m` of some world point (a square round each point)."""
         if not len(points):
@@ -202,9 +214,7 @@ class GridCover:
         new piece kept within those tiles and their halo (as the tiles' own pieces are)."""
         group = sorted({self._tile_of(cell) for cell in cells})
         window = self._window(group)
-        ranges = [self.tile_range(t) for t in group]
-        box = (min(r.start for r, _ in ranges) - self.halo_cells, max(r.stop for r, _ in ranges) + self.halo_cells,
-               min(c.start for _, c in ranges) - self.halo_cells, max(c.stop for _, c in ranges) + self.halo_cells)
+        box = self._halo_box(*self._extent(group))
         where = (0, window.row0, window.col0, window.distance.shape[1])
         yield from self._bisect(cells, np.zeros(len(cells), dtype=np.intp), np.array([box + where]),
                                 window.distance.reshape(-1), tolerance=tolerance)
@@ -244,10 +254,9 @@ class GridCover:
         """The distance transform over a group of tiles and their halo: the exact Euclidean transform
         (OpenCV's, Felzenszwalb–Huttenlocher) of the window widened by `reach_cells` on every side, so
         exact wherever the distance is at most that, and above it elsewhere."""
-        ranges = [self.tile_range(t) for t in group]
+        rows, cols = self._extent(group)
         h, k = self.halo_cells + 1, self.reach_cells
-        r0, r1 = min(r.start for r, _ in ranges) - h, max(r.stop for r, _ in ranges) + h
-        c0, c1 = min(c.start for _, c in ranges) - h, max(c.stop for _, c in ranges) + h
+        r0, r1, c0, c1 = rows.start - h, rows.stop + h, cols.start - h, cols.stop + h
         free = ~self.grid.padded_blocked(slice(r0 - k, r1 + k), slice(c0 - k, c1 + k))
         # Cells to the nearest blocked cell's centre (0 on blocked cells), the square root of a whole
         # number. OpenCV's single-precision value of it is within one epsilon (relative) of the exact one
@@ -267,9 +276,7 @@ class GridCover:
         """A rectangle of tiles' border cells (by piece, then row, then column), their first pieces, and
         each piece's box: the rectangle and its halo, where its grown ellipse must stay (its tiles are
         fitted together, so that is within `reach_m` of tiles fitted with it)."""
-        ranges = [self.tile_range(t) for t in block]
-        rows = slice(min(r.start for r, _ in ranges), max(r.stop for r, _ in ranges))
-        cols = slice(min(c.start for _, c in ranges), max(c.stop for _, c in ranges))
+        rows, cols = self._extent(block)
         border = self.grid.border_cells(rows, cols)
         if not len(border):
             return None
@@ -285,8 +292,7 @@ class GridCover:
         js, is_ = np.nonzero(mask)  # row by row, then column
         piece = labels[js, is_].astype(np.intp) - 1  # every label 1…count holds a border cell: `near` is their dilation
         order = np.argsort(piece, kind="stable")
-        box = (rows.start - self.halo_cells, rows.stop + self.halo_cells,
-               cols.start - self.halo_cells, cols.stop + self.halo_cells)
+        box = self._halo_box(rows, cols)
         return (np.column_stack([is_ + cols.start, js + rows.start])[order], piece[order], np.array([box] * count))
 
     def _tile_of(self, cell: IntArray) -> Tile:

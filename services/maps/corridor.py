@@ -459,9 +459,8 @@ class _Corridor:
 
 def _pieces(cover: GridCover, tiles: set, waypoints: FloatArray) -> list[GridPiece]:
     """The tiles' pieces, those holding the start or a goal refitted tighter first (`GridCover.tighten`)."""
-    cover.pieces(tiles)
-    cover.tighten(waypoints)
-    return cover.pieces(tiles)
+    fitted = cover.pieces(tiles)
+    return cover.pieces(tiles) if cover.tighten(waypoints) else fitted
 
 
 def _clear_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:

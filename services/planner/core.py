@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from services.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
 from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -196,8 +196,7 @@ def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: fl
 def _entered_m(points: FloatArray, stack: EllipseStack) -> float:
     """How far along the polyline its first segment that enters an ellipse ends (eq. 2, exact)."""
     rows, _, levels = stack.segment_pairs(points[:-1], points[1:])
-    first = int(np.min(rows[levels < 1.0]))
-    return float(np.sum(np.linalg.norm(np.diff(points[: first + 2], axis=0), axis=1)))
+    return polyline_length(points[: int(np.min(rows[levels < 1.0])) + 2])
 
 
 def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bounds_max: FloatArray, *,
