@@ -175,6 +175,25 @@ def free_start_scales(stack: EllipseStack, *, start: FloatArray, inflation_m: fl
     return np.where((level < 1.0 + _START_LEVEL_MARGIN) & (scale >= floor) & (scale > 0.0), scale, 1.0)
 
 
+def inset_bounds(bounds_min: FloatArray, bounds_max: FloatArray, *, keep_m: float, start: FloatArray,
+                 goals: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The map's bounds moved in by the run's hard floor `keep_m`: the sim's path guard keeps every path's
+    centre line that far inside them, as from a wall (`services.drive.guard`), so a plan that ran nearer
+    an edge would be refused scan after scan.
+
+    Like the guard, less near a robot already closer to an edge than that: the bounds then keep the
+    start `_START_LEVEL_MARGIN` of its own depth inside them, as `free_start_scales` keeps it outside an
+    ellipse (the guard allows the start's depth over 1 + `guard.START_SLACK`, more). Never past a goal
+    (one nearer an edge than the floor cannot be driven to in any case: the guard says why).
+    """
+    def depth(points: FloatArray) -> float:
+        points = np.atleast_2d(points)
+        return float(np.minimum(points - bounds_min, bounds_max - points).min())
+
+    inset = max(0.0, min(keep_m, depth(start) / (1.0 + _START_LEVEL_MARGIN), depth(goals) if len(goals) else keep_m))
+    return bounds_min + inset, bounds_max - inset
+
+
 def relieved_scales(
     stack: EllipseStack, *, start: FloatArray, within_m: float, inflation_m: float, keep_out_m: float
 ) -> FloatArray:
@@ -246,6 +265,7 @@ class _Scan:
     goals: FloatArray  # those ahead
     ellipses: list[Ellipse]  # the sensed ones, any the robot is inside shrunk off it (`free_start_scales`)
     relieved: list[Ellipse] | None  # ... and the margin near the robot given up to the hard floor, if it was
+    bounds: tuple[FloatArray, FloatArray]  # where plans may go: the map's less the guard's floor (`inset_bounds`)
 
 
 @dataclass(frozen=True)
@@ -420,7 +440,9 @@ class PlannerStage:
                                                   inflation_m=config.inflation_m, keep_out_m=config.keep_out_m))
         return _Scan(message=message, goal_base=goal_base, position=position, heading_rad=state.pose.theta_rad,
                      goals=goals, ellipses=scaled(sensed, free),
-                     relieved=scaled(sensed, relief) if np.any(relief < free) else None)
+                     relieved=scaled(sensed, relief) if np.any(relief < free) else None,
+                     bounds=inset_bounds(config.bounds_min, config.bounds_max, keep_m=config.keep_out_m,
+                                         start=position, goals=goals))
 
     def _answer(self, scan: _Scan) -> Outputs:
         """The scan's answer, planned in the foreground: the current plan if it holds, else its repair or a replan."""
@@ -484,7 +506,7 @@ class PlannerStage:
             return None
         used = scan.relieved if self.plan_relieved and scan.relieved is not None else scan.ellipses
         points = self._still_valid(self.plan, position=scan.position, heading_rad=scan.heading_rad, goals=scan.goals,
-                                   ellipses=used)
+                                   ellipses=used, bounds=scan.bounds)
         return None if points is None else (points, used)
 
     def _make(self, scan: _Scan, held: tuple[FloatArray, int, bool] | None, *, late: Callable[[], bool]) -> _Made:
@@ -495,13 +517,14 @@ class PlannerStage:
             plan, margin, relieved = held
             used = scan.relieved if relieved and scan.relieved is not None else scan.ellipses
             repaired = self._repair(plan, margin=margin, position=scan.position, heading_rad=scan.heading_rad,
-                                    goals=scan.goals, ellipses=used,
+                                    goals=scan.goals, ellipses=used, bounds=scan.bounds,
                                     groups=np.array([e.group for e in scan.message.ellipsoids]),
                                     clusters=np.array([e.cluster_id for e in scan.message.ellipsoids]))
             if repaired is not None:
                 return _Made(repaired[0], scan.goal_base, relieved, repaired[1], used)
         plan, used, relieved = self._replan(position=scan.position, heading_rad=scan.heading_rad, goals=scan.goals,
-                                            ellipses=scan.ellipses, relieved=scan.relieved, late=late)
+                                            ellipses=scan.ellipses, relieved=scan.relieved, bounds=scan.bounds,
+                                            late=late)
         return _Made(plan.points if plan.status == "ok" else None, scan.goal_base, relieved, 0, used,
                      reason=plan.reason)
 
@@ -538,12 +561,13 @@ class PlannerStage:
         self._seq += 1
         return [("raw_path", out)]
 
-    def _smooth(self, points: FloatArray, *, goals: FloatArray, ellipses: list[Ellipse]) -> Smoothed:
-        """The curve the smoother downstream will make of `points`, verified as it will verify it."""
+    def _smooth(self, points: FloatArray, *, goals: FloatArray, ellipses: list[Ellipse],
+                bounds: tuple[FloatArray, FloatArray]) -> Smoothed:
+        """The curve the smoother downstream will make of `points`, verified as it will verify it (within
+        `bounds`, which lie within the map's bounds the smoother keeps to)."""
         config = self.config
         return smooth(points, ellipses=ellipses, max_curvature=config.max_curvature, heading_rad=None, goals=goals,
-                      goal_tolerance_m=config.goal_tolerance_m, bounds_min=config.bounds_min,
-                      bounds_max=config.bounds_max)
+                      goal_tolerance_m=config.goal_tolerance_m, bounds_min=bounds[0], bounds_max=bounds[1])
 
     def _repair_margins(self) -> tuple[tuple[float, float], ...]:
         """(level, curvature factor) a repair tries in turn: the base margin, then the known-map one."""
@@ -552,7 +576,7 @@ class PlannerStage:
 
     def _repair(
         self, plan: FloatArray, *, margin: int, position: FloatArray, heading_rad: float, goals: FloatArray,
-        ellipses: list[Ellipse], groups: FloatArray, clusters: FloatArray,
+        ellipses: list[Ellipse], bounds: tuple[FloatArray, FloatArray], groups: FloatArray, clusters: FloatArray,
     ) -> tuple[FloatArray, int] | None:
         """`plan`, the current plan (last repaired at `_repair_margins()[margin]`), no longer valid,
         re-optimised from the robot's pose as the first iterate of the refinement, and the margin it was
@@ -608,8 +632,8 @@ class PlannerStage:
         for margin in range(margin, len(margins)):
             level, factor = margins[margin]
             try:
-                refined = refine(legs=legs, ellipses=ellipses, bounds_min=config.bounds_min,
-                                 bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+                refined = refine(legs=legs, ellipses=ellipses, bounds_min=bounds[0],
+                                 bounds_max=bounds[1], max_curvature=config.max_curvature,
                                  heading_rad=heading_rad,
                                  settings=replace(config.refine, level=level, curvature_factor=factor,
                                                   min_iterations_unmet=_REPAIR_ITERATIONS_UNMET))
@@ -620,12 +644,12 @@ class PlannerStage:
                 return None  # the way round is blocked by the obstacles themselves: no margin opens it
             if polyline_length(points) > longest_m:
                 continue
-            if self._smooth(points, goals=goals, ellipses=ellipses).verification.ok:
+            if self._smooth(points, goals=goals, ellipses=ellipses, bounds=bounds).verification.ok:
                 return points, margin
         return None
 
     def _still_valid(self, plan: FloatArray, *, position: FloatArray, heading_rad: float, goals: FloatArray,
-                     ellipses: list[Ellipse]) -> FloatArray | None:
+                     ellipses: list[Ellipse], bounds: tuple[FloatArray, FloatArray]) -> FloatArray | None:
         """`plan` (the current one) trimmed to the robot, if it is still clear and still smooths; else None.
 
         A suffix's clamped spline starts with a different curvature from the full plan's curve at the
@@ -642,7 +666,7 @@ class PlannerStage:
         while True:
             candidate = plan[max(0, cut - back):]
             if len(candidate) >= 4:
-                if self._smooth(candidate, goals=goals, ellipses=ellipses).verification.ok:
+                if self._smooth(candidate, goals=goals, ellipses=ellipses, bounds=bounds).verification.ok:
                     return candidate
             if cut - back <= 0:
                 return None
@@ -650,7 +674,7 @@ class PlannerStage:
 
     def _replan(
         self, *, position: FloatArray, heading_rad: float, goals: FloatArray, ellipses: list[Ellipse],
-        relieved: list[Ellipse] | None, late: Callable[[], bool],
+        relieved: list[Ellipse] | None, bounds: tuple[FloatArray, FloatArray], late: Callable[[], bool],
     ) -> tuple[PathPlan, list[Ellipse], bool]:
         """A new plan from the robot; the ellipses it was made against; whether they are the `relieved` ones.
 
@@ -673,9 +697,9 @@ class PlannerStage:
         for used, repairs, relief in options:
             attempted = plan_within(
                 start=position, heading_rad=heading_rad, goals=goals, ellipses=used,
-                bounds_min=config.bounds_min, bounds_max=config.bounds_max, max_curvature=config.max_curvature,
+                bounds_min=bounds[0], bounds_max=bounds[1], max_curvature=config.max_curvature,
                 ladder=margin_ladder(config.refine, repairs), late=late,
-                smooth_fn=lambda points, used=used: self._smooth(points, goals=goals, ellipses=used),
+                smooth_fn=lambda points, used=used: self._smooth(points, goals=goals, ellipses=used, bounds=bounds),
             )
             if attempted.smoothed is not None and attempted.smoothed.verification.ok:
                 if relief:

@@ -313,3 +313,36 @@ def test_a_live_planners_budget_is_its_share_of_the_sensor_period_or_the_one_giv
     period_s = 1.0 / float(scenario.sensor.rate_hz)
     assert PlannerStage.from_scenario(scenario, deadline=True).config.budget_s == pytest.approx(0.15 * period_s)
     assert PlannerStage.from_scenario(scenario, deadline=True, budget_ms=40.0).config.budget_s == pytest.approx(0.04)
+
+
+def test_a_plan_keeps_the_guards_floor_from_the_maps_bounds():
+    """A room's dividing wall seen down to 0.6 m above the map's edge (its cover a grown disc there): the
+    way round runs between it and the edge. The sim's path guard keeps every path the hard floor inside the
+    bounds, as from a wall; the online margin (level 1.1) alone would push the plan to 0.33 m from the
+    edge, a plan the guard refuses scan after scan while the car brakes. The plan keeps the floor, and the
+    curve the smoother makes of it is one the guard drives."""
+    doc = {"format": "cvxnav.scenario/1", "name": "room", "bounds": {"min": [0.0, 0.0], "max": [12.0, 6.0]},
+           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
+                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
+           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
+           "start": {"x": 1.5, "y": 3.0, "theta": 0.0}, "goals": [[11.0, 3.0]], "obstacles": [], "expect": "reach"}
+    scenario = parse_scenario(json.dumps(doc), source="room")
+    planner = PlannerStage.from_scenario(scenario)
+    robot = RobotState(header=Header(stamp_s=0.0, seq=0), pose=Pose2D(x_m=1.5, y_m=3.0, theta_rad=0.0), speed_mps=0.0,
+                       steering_rad=0.0, goal_index=0, goals_reached=0, done=False)
+    cover = Ellipse.circle(center=(6.0, 3.35), radius=2.75)
+    wall = Ellipsoids(header=Header(stamp_s=0.0, seq=0), scan_seq=0, inflation_m=scenario.inflation_m,
+                      ellipsoids=[ellipse_to_msg(cover, group=0, cluster_id=0)])
+    planner.process(topic="state", message=robot, now_s=0.0)
+    (_, raw), = planner.process(topic="ellipsoids", message=wall, now_s=0.0)
+    assert raw.status == "ok"
+    (_, curve), = SmootherStage.from_scenario(scenario).process(topic="raw_path", message=raw, now_s=0.0)
+    assert curve.status == "ok"
+    points = np.array(curve.points)
+    assert points[:, 1].min() < 0.6  # it went round below the wall
+    depth = np.minimum(points - [0.0, 0.0], [12.0, 6.0] - points).min()
+    assert depth >= scenario.keep_out_m - 1e-6
+    guard = PathGuard(inflation_m=scenario.inflation_m, keep_out_m=scenario.keep_out_m,
+                      bounds_min=np.array([0.0, 0.0]), bounds_max=np.array([12.0, 6.0]))
+    guard.know(wall)
+    assert guard.check(curve.points, start=(1.5, 3.0)) is None
