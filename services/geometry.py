@@ -86,8 +86,9 @@ class Ellipse:
     def area(self) -> float:
         return float(np.pi / np.linalg.det(self.A))
 
-    def grown(self, margin_m: float) -> Ellipse:
-        """The least-area ellipse of a family that contains the Minkowski sum with a disc of radius r.
+    def grown(self, margin_m: float, *, p: float | None = None) -> Ellipse:
+        """The least-area ellipse of a family that contains the Minkowski sum with a disc of radius r (with
+        `p`, that member of the family: every member contains the sum).
 
         Lengthening every semi-axis by r is NOT enough for a thin ellipse: near the tip of its major
         axis the sum is bounded by a circle of radius r, and the lengthened ellipse is sharper there
@@ -103,17 +104,8 @@ class Ellipse:
         w, R = np.linalg.eigh(self.A)
         lam = 1.0 / w**2  # eigenvalues of Q₁ = semi-axes²
         r2 = margin_m**2
-        lam1, lam2 = lam.tolist()
-
-        def slope(log_p: float) -> float:
-            # Two terms in plain floats (brentq calls this some forty times; numpy's calls on two
-            # numbers cost more than the arithmetic), the same operations in the same order.
-            p = float(np.exp(log_p))
-            p2, q, s = p**2, 1 + 1 / p, (1 + p) * r2
-            return (r2 - lam1 / p2) / (q * lam1 + s) + (r2 - lam2 / p2) / (q * lam2 + s)
-
-        log_p = brentq(slope, -40.0, 40.0, xtol=1e-12)
-        p = np.exp(log_p)
+        if p is None:
+            p = least_area_growth(lam, margin_m)
         semi_axes = np.sqrt((1 + 1 / p) * lam + (1 + p) * r2)
         A = R @ np.diag(1.0 / semi_axes) @ R.T
         return Ellipse(A=A, b=-A @ self.center)
@@ -438,6 +430,23 @@ def _segment_minimum(u0: FloatArray, v: FloatArray) -> FloatArray:
     t = np.minimum(np.maximum(-_dot(u0, v) / np.where(vv > 0.0, vv, 1.0), 0.0), 1.0)  # clipped to [0, 1]
     w = u0 + t * v
     return np.sqrt(_dot(w, w))
+
+
+def least_area_growth(squared_semi_axes: FloatArray, margin_m: float) -> float:
+    """The Kurzhanski–Vályi parameter p of the least-area ellipse (1 + 1/p) Q + (1 + p) r² I containing an
+    ellipse of these squared semi-axes (Q's eigenvalues λᵢ) ⊕ disc(r): the root of
+    Σᵢ (r² − λᵢ/p²) / ((1 + 1/p) λᵢ + (1 + p) r²) (`Ellipse.grown`)."""
+    lam1, lam2 = np.asarray(squared_semi_axes, dtype=float).tolist()
+    r2 = margin_m**2
+
+    def slope(log_p: float) -> float:
+        # Two terms in plain floats (brentq calls this some forty times; numpy's calls on two
+        # numbers cost more than the arithmetic), the same operations in the same order.
+        p = float(np.exp(log_p))
+        p2, q, s = p**2, 1 + 1 / p, (1 + p) * r2
+        return (r2 - lam1 / p2) / (q * lam1 + s) + (r2 - lam2 / p2) / (q * lam2 + s)
+
+    return float(np.exp(brentq(slope, -40.0, 40.0, xtol=1e-12)))
 
 
 def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) -> FloatArray:

@@ -21,10 +21,11 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
-from services.geometry import Ellipse, FloatArray, as_complex, counter_clockwise, ring_next, signed_area
+from services.geometry import (Ellipse, FloatArray, as_complex, counter_clockwise, least_area_growth, ring_next,
+                               signed_area)
 
 __all__ = ["Cell", "Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon",
-           "tiled_cover", "tiles"]
+           "grown_cover", "grown_near", "tiled_cover", "tiles"]
 
 Fit = Callable[[FloatArray], Ellipse]
 _ISOTROPIC_RATIO = 1.01  # second moments closer than this: the principal axis is ill-defined
@@ -33,6 +34,7 @@ _COARSE = 4  # excess_over_points: the coarse samples are every 4th ring and ang
 _COARSE_FROM = 256  # ... when there are more samples than this
 _BOUND_SLACK_M = 1e-9  # a bound this close to the coarse maximum is queried (rounding)
 _DEGENERATE_M = 1e-3  # mvee_fast's eps_m: a thinner set is fattened before it is fitted
+_PREFER_LEAST_M = 1e-3  # grown_near: another growth is taken over the least-area one if it strays this much less
 
 
 # --------------------------------------------------------------------------- excess
@@ -123,6 +125,60 @@ def _excess_over_points(ellipse: Ellipse, tree: cKDTree, *, tolerance_m: float) 
     distance = tree.query(candidates)[0]
     worst = int(np.argmax(distance))
     return float(distance[worst]), candidates[worst]
+
+
+def grown_near(ellipse: Ellipse, margin_m: float, points: cKDTree, *, growths: int = 4, spacing_m: float = 0.05
+               ) -> tuple[Ellipse, float]:
+    """`ellipse`, a fit of some of `points`, grown by `margin_m`: of the Kurzhanski–Vályi growths, each of
+    which contains the fit ⊕ disc(margin) (`Ellipse.grown`), the one whose boundary strays least beyond
+    the margin from the points; and that excess (the largest distance from its boundary, sampled about
+    `spacing_m` apart, to the nearest point, less the margin).
+
+    The least-area growth of a long thin fit (a wall's) is about √2·r wide, some 0.2 m more than the
+    wall's own grown strip for the depot car; a small p keeps the width near r at the price of long
+    tips, which do no harm where they lie along the wall's own points (as the map's cover chooses its
+    growths, `services.ellipsoids.grid_cover`). The candidates: the least-area growth, kept unless another
+    strays `_PREFER_LEAST_M` less (so that points moved by a rounding, a map in UTM metres, choose alike),
+    and `growths` values of p from f₂/r to f₁/r (f the fit's semi-axes).
+    """
+    w, R = np.linalg.eigh(ellipse.A)
+    squared = 1.0 / w**2  # the fit's semi-axes², largest first
+    f1, f2 = np.sqrt(np.maximum(squared, 1e-12)) / margin_m
+    p = np.concatenate([[least_area_growth(squared, margin_m)], np.geomspace(f2, f1, growths)])
+    semi = np.sqrt((1.0 + 1.0 / p)[:, None] * squared + ((1.0 + p) * margin_m**2)[:, None])  # (candidates, 2)
+    # Each candidate's boundary at as many angles as its perimeter (≥ π (a₁ + a₂)) needs, queried all at once.
+    counts = np.clip(np.ceil(np.pi * semi.sum(axis=1) / spacing_m), 32, 2048).astype(np.intp)
+    offsets = np.cumsum(counts) - counts
+    owner = np.repeat(np.arange(len(p)), counts)
+    angle = 2.0 * np.pi * (np.arange(len(owner)) - offsets[owner]) / counts[owner]
+    local = semi[owner] * np.column_stack([np.cos(angle), np.sin(angle)])
+    excess = np.maximum.reduceat(points.query(ellipse.center + local @ R.T)[0], offsets) - margin_m
+    best = int(np.argmin(excess))
+    if excess[0] - excess[best] < _PREFER_LEAST_M:
+        best = 0
+    return ellipse.grown(margin_m, p=float(p[best])), float(excess[best])
+
+
+def grown_cover(piece: Piece, margin_m: float, points: cKDTree, *, tolerance_m: float = 0.1, depth: int = 4
+                ) -> list[tuple[Ellipse, Ellipse]]:
+    """A cover's piece as (fit, growth) pairs: its fit grown by `grown_near` while that strays no more than
+    `tolerance_m` beyond the margin from `points`, else its points split in two (`_split_points`), each
+    half fitted (`mvee_fast`) and grown so, `depth` times at most.
+
+    A piece is judged by its growth, not by its fit: a fit that ends at a door's jamb within tolerance of
+    its points still has a growth whose tip runs into the doorway (for a 0.5 m piece of wall with the
+    depot car's margin, 0.06 m beyond the jamb's own grown disc), and a door with that to spare on both
+    sides closes. Shorter pieces there have shorter tips. Every pair's growth contains its fit ⊕
+    disc(margin), and the halves' fits contain their points, so the pairs cover what the piece did.
+    """
+    def cover(part: FloatArray, fit: Ellipse, depth: int) -> list[tuple[Ellipse, Ellipse]]:
+        grown, excess = grown_near(fit, margin_m, points)
+        halves = _split_points(part) if excess > tolerance_m and depth > 0 else []
+        if not halves:
+            return [(fit, grown)]
+        return [pair for half in halves for pair in cover(half, mvee_fast(half), depth - 1)]
+
+    return cover(piece.points, piece.ellipse, depth)
 
 
 # --------------------------------------------------------------------------- splitting

@@ -3,7 +3,11 @@
 Each cluster is covered by a few tight ellipses, tile by tile of a fixed grid (`tiles`, `tiled_cover`:
 pieces split across the middle of fixed cells, so they stay put as points are added), the ellipses
 whose gap is narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every
-ellipse is grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point.
+ellipse is grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point:
+of the growths that contain the fit ⊕ disc(inflation), the one that strays least beyond the inflation
+from the tile's points, a piece split where even that strays more than the tolerance (`grown_cover`;
+the least-area growth of a wall is √2·inflation wide, and a door's jambs closed a door with 0.2 m to
+spare).
 
 Covers, and the grown ellipses, are cached by content, a cluster's and each of its tiles': the sensing
 stage sends unchanged clusters byte-identical, and a cluster that grew has new points in a few tiles
@@ -37,13 +41,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel
+from scipy.spatial import cKDTree
 
 from schemas.messages import Clusters, Ellipsoids, Map, RobotState
 from schemas.occupancy import MapError
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError
 from services.convert import answer_header, ellipse_to_msg, grid_from_msg
-from services.ellipsoids.cover import Cell, Piece, tiled_cover, tiles
+from services.ellipsoids.cover import Cell, Piece, grown_cover, tiled_cover, tiles
 from services.ellipsoids.gap import gap_samples, group_ellipses
 from services.ellipsoids.grid_cover import GridCover, GridPiece
 from services.geometry import Ellipse
@@ -79,11 +84,13 @@ class EllipsoidsConfig:
 
 @dataclass(frozen=True)
 class _Fitted:
-    """One ellipse of a cluster's cover, grown, and the samples grouping bounds its gaps with."""
+    """One ellipse of a cluster's cover, grown, and the samples grouping bounds its gaps with; `leaf`: the
+    tiled cover's piece it was made from (itself, or one its growth split: `grown_cover`)."""
 
     ellipse: Ellipse
     grown: Ellipse
     samples: np.ndarray
+    leaf: Ellipse
 
 
 _Cover = tuple[list[Piece], list[_Fitted]]  # a cover's split trees and its ellipses, fitted
@@ -95,7 +102,7 @@ class EllipsoidsStage:
         self._fits: OrderedDict[bytes, _Cover] = OrderedDict()  # a cluster's or a tile's cover, by content
         # The previous message's covers: their pieces (by cell) and their ellipses (by identity).
         self._cells: dict[Cell, list[Piece]] = {}
-        self._fitted: dict[int, _Fitted] = {}
+        self._fitted: dict[int, list[_Fitted]] = {}  # by the id of their leaf
         self._seq = 0
         self.map: GridCover | None = None  # a known map's wall cover
         self._map_message: Map | None = None  # ... and the message it came in
@@ -131,7 +138,8 @@ class EllipsoidsStage:
     def _tile(self, points: np.ndarray, *, cell: Cell) -> tuple[list[Piece], list[_Fitted]]:
         cover = tiled_cover(points, cell=cell, previous=self._cells, tolerance_m=self.config.tolerance_m,
                             max_pieces=self.config.max_pieces)
-        return [cover.root], [self._fit(piece.ellipse) for piece in cover.pieces]
+        tree = cKDTree(points)
+        return [cover.root], [fitted for piece in cover.pieces for fitted in self._fit(piece, near=tree)]
 
     def _cached(self, points: np.ndarray, make: Callable[[], _Cover]) -> _Cover:
         digest = hashlib.blake2b(points.tobytes(), digest_size=16).digest()
@@ -143,11 +151,14 @@ class EllipsoidsStage:
             self._fits.popitem(last=False)
         return made
 
-    def _fit(self, ellipse: Ellipse) -> _Fitted:
-        known = self._fitted.get(id(ellipse))
-        if known is not None and known.ellipse is ellipse:
+    def _fit(self, piece: Piece, *, near: cKDTree) -> list[_Fitted]:
+        """A piece's ellipses, grown to stray at most the tolerance beyond the margin from the tile's points
+        `near` where they can (`grown_cover`); those of the previous message's piece, if it is that one."""
+        known = self._fitted.get(id(piece.ellipse))
+        if known is not None and known[0].leaf is piece.ellipse:
             return known
-        return _Fitted(ellipse=ellipse, grown=ellipse.grown(self.config.inflation_m), samples=gap_samples(ellipse))
+        pairs = grown_cover(piece, self.config.inflation_m, near, tolerance_m=self.config.tolerance_m)
+        return [_Fitted(ellipse=fit, grown=grown, samples=gap_samples(fit), leaf=piece.ellipse) for fit, grown in pairs]
 
     def _take_map(self, message: Map) -> None:
         """A new map: its wall cover replaces the old one, fitted as the robot comes near. The same map
@@ -189,7 +200,7 @@ class EllipsoidsStage:
     def _map_fit(self, piece: GridPiece) -> _Fitted:
         known = self._map_fits.get(id(piece))
         if known is None:
-            known = _Fitted(ellipse=piece.raw, grown=piece.grown, samples=gap_samples(piece.raw))
+            known = _Fitted(ellipse=piece.raw, grown=piece.grown, samples=gap_samples(piece.raw), leaf=piece.raw)
             self._map_fits[id(piece)] = known
         return known
 
@@ -220,7 +231,9 @@ class EllipsoidsStage:
             fitted.extend(cover)
             cluster_ids.extend([cluster_id] * len(cover))
         self._cells = cells
-        self._fitted = {id(f.ellipse): f for f in fitted}
+        self._fitted = {}
+        for f in fitted:
+            self._fitted.setdefault(id(f.leaf), []).append(f)
         walls = self._map_walls(room=MAX_ELLIPSES - len(fitted))
         fitted.extend(walls)
         cluster_ids.extend([MAP_CLUSTER_ID] * len(walls))

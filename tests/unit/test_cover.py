@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -15,7 +17,10 @@ from services.ellipsoids.cover import (
     tiled_cover,
     tiles,
 )
+from schemas.messages import ClusterMsg, Clusters, Header
 from services.ellipsoids.mvee import mvee, mvee_fast
+from schemas.scenario import parse_scenario
+from services.ellipsoids.stage import EllipsoidsStage
 from services.geometry import EllipseStack
 
 BOX = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]])
@@ -163,3 +168,37 @@ def test_a_tiled_cover_of_a_growing_cluster_refits_only_the_cells_new_points_fal
         before = leaves
         seen += int(rng.integers(10, 31))
     assert kept > 0
+
+
+def _door_clusters(door_m: float) -> Clusters:
+    """A wall's face at x = 6 m as the car sees it from (1.5, 3) (5 cm apart, from 0.8 to 5.2 m), with a door
+    of `door_m` centred at y = 3 m: its two sides are two clusters."""
+    y = np.arange(0.8, 5.2 + 1e-9, 0.05)
+    sides = [y[y <= 3.0 - door_m / 2], y[y >= 3.0 + door_m / 2]]
+    clusters = [ClusterMsg(cluster_id=k, points=[(6.0, float(v)) for v in side]) for k, side in enumerate(sides)]
+    return Clusters(header=Header(stamp_s=0.0, seq=0), scan_seq=0, clusters=clusters)
+
+
+def test_sensed_door_jambs_leave_a_door_the_robot_fits_through_open():
+    """A door 0.2 m wider than the depot car's passage (twice its 0.45 m margin): twice the cover's
+    tolerance. The least-area growth of the jambs' fits ran their tips more than 0.1 m into the doorway,
+    and the two closed it (level 0.986 at its middle); grown to stray at most the tolerance beyond the
+    margin from the wall's points (`grown_cover`), the way through the door's middle is outside every
+    grown ellipse. Every point within the margin of a sensed point is still inside one."""
+    doc = {"format": "cvxnav.scenario/1", "name": "room", "bounds": {"min": [0.0, 0.0], "max": [12.0, 6.0]},
+           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
+                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
+           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
+           "start": {"x": 1.5, "y": 3.0, "theta": 0.0}, "goals": [[11.0, 3.0]], "obstacles": [], "expect": "reach"}
+    scenario = parse_scenario(json.dumps(doc), source="room")
+    margin = scenario.inflation_m
+    clusters = _door_clusters(2 * margin + 0.2)
+    (_, out), = EllipsoidsStage.from_scenario(scenario).process(topic="clusters", message=clusters, now_s=0.0)
+    grown = EllipseStack(A=np.array([e.A for e in out.ellipsoids]), b=np.array([e.b for e in out.ellipsoids]))
+    through = np.column_stack([np.linspace(4.0, 8.0, 401), np.full(401, 3.0)])
+    assert grown.levels(through).min() > 1.0
+    assert len({e.group for e in out.ellipsoids}) == 2  # the jambs are not grouped across the door
+    sensed = np.array([p for c in clusters.clusters for p in c.points])
+    angle = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
+    within = (sensed[:, None, :] + margin * np.stack([np.cos(angle), np.sin(angle)], axis=1)[None]).reshape(-1, 2)
+    assert np.all(grown.levels(within).min(axis=1) <= 1.0 + 1e-9)
