@@ -14,9 +14,9 @@ the closed-loop bench read this table; no core names a key of its own.
 
 For a ROS 2 robot (``cvxnav run --ros2``) the bridge ``ros2`` takes the sim's place: it publishes
 scan and state from the robot's /scan and /odom, reads smooth_path and ellipsoids as the sim does, and
-publishes ``goals`` (read by the planner and the smoother) when the robot is given a /goal_pose, and
-``map`` (read by the ellipsoid stage, which adds the map's walls near the robot to the sensed
-obstacles) when it is given a /map. It is
+publishes ``goals`` (read by the ellipsoid stage, the planner and the smoother) when the robot is given
+a /goal_pose, and ``map`` (read by the ellipsoid stage, which adds the map's walls near the robot to the
+sensed obstacles) when it is given a /map. It is
 also a ROS 2 node (``StageSpec.ros2``): its topics are rmw_zenoh's keys outside the prefix
 (``services.ros2.interface``), declared by the shell (``services.shell.ros2``).
 
@@ -107,7 +107,7 @@ _PIPELINE = (
     StageSpec(name="sensing", factory="services.sensing.stage:SensingStage.from_scenario",
               subscribes=("scan",), publishes=("clusters",)),
     StageSpec(name="ellipsoids", factory="services.ellipsoids.stage:EllipsoidsStage.from_scenario",
-              subscribes=("map", "state", "clusters"), publishes=("ellipsoids",)),
+              subscribes=("map", "state", "goals", "clusters"), publishes=("ellipsoids",)),
     StageSpec(name="planner", factory="services.planner.stage:PlannerStage.from_scenario",
               subscribes=("goals", "ellipsoids", "state"), publishes=("raw_path",)),
     StageSpec(name="smoother", factory="services.smoother.stage:SmootherStage.from_scenario",

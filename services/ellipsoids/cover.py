@@ -159,26 +159,24 @@ def grown_near(ellipse: Ellipse, margin_m: float, points: cKDTree, *, growths: i
     return ellipse.grown(margin_m, p=float(p[best])), float(excess[best])
 
 
-def grown_cover(piece: Piece, margin_m: float, points: cKDTree, *, tolerance_m: float = 0.1, depth: int = 4
-                ) -> list[tuple[Ellipse, Ellipse]]:
-    """A cover's piece as (fit, growth) pairs: its fit grown by `grown_near` while that strays no more than
-    `tolerance_m` beyond the margin from `points`, else its points split in two (`_split_points`), each
-    half fitted (`mvee_fast`) and grown so, `depth` times at most.
+def grown_cover(part: FloatArray, fit: Ellipse, margin_m: float, points: cKDTree, *, tolerance_m: float = 0.1,
+                depth: int = 4) -> list[tuple[FloatArray, Ellipse, Ellipse]]:
+    """A cover's piece, its points `part` and their `fit`, as (points, fit, growth): the fit grown by
+    `grown_near` while that strays no more than `tolerance_m` beyond the margin from `points`, else its
+    points split in two (`_split_points`), each half fitted (`mvee_fast`) and grown so, `depth` times at most.
 
     A piece is judged by its growth, not by its fit: a fit that ends at a door's jamb within tolerance of
     its points still has a growth whose tip runs into the doorway (for a 0.5 m piece of wall with the
     depot car's margin, 0.06 m beyond the jamb's own grown disc), and a door with that to spare on both
-    sides closes. Shorter pieces there have shorter tips. Every pair's growth contains its fit ⊕
-    disc(margin), and the halves' fits contain their points, so the pairs cover what the piece did.
+    sides closes. Shorter pieces there have shorter tips. Every growth contains its fit ⊕ disc(margin),
+    and the halves' fits contain their points, so the growths cover what the piece's did.
     """
-    def cover(part: FloatArray, fit: Ellipse, depth: int) -> list[tuple[Ellipse, Ellipse]]:
-        grown, excess = grown_near(fit, margin_m, points)
-        halves = _split_points(part) if excess > tolerance_m and depth > 0 else []
-        if not halves:
-            return [(fit, grown)]
-        return [pair for half in halves for pair in cover(half, mvee_fast(half), depth - 1)]
-
-    return cover(piece.points, piece.ellipse, depth)
+    grown, excess = grown_near(fit, margin_m, points)
+    halves = _split_points(part) if excess > tolerance_m and depth > 0 else []
+    if not halves:
+        return [(part, fit, grown)]
+    return [made for half in halves
+            for made in grown_cover(half, mvee_fast(half), margin_m, points, tolerance_m=tolerance_m, depth=depth - 1)]
 
 
 # --------------------------------------------------------------------------- splitting

@@ -43,7 +43,7 @@ import numpy as np
 from pydantic import BaseModel
 from scipy.spatial import cKDTree
 
-from schemas.messages import Clusters, Ellipsoids, Map, RobotState
+from schemas.messages import Clusters, Ellipsoids, Goals, Map, RobotState
 from schemas.occupancy import MapError
 from schemas.scenario import Scenario
 from services.contract import Outputs, StageInputError
@@ -51,10 +51,12 @@ from services.convert import answer_header, ellipse_to_msg, grid_from_msg
 from services.ellipsoids.cover import Cell, Piece, grown_cover, tiled_cover, tiles
 from services.ellipsoids.gap import gap_samples, group_ellipses
 from services.ellipsoids.grid_cover import GridCover, GridPiece
-from services.geometry import Ellipse
+from services.geometry import Ellipse, EllipseStack
 from services.limits import MAX_ELLIPSES, MAX_SENSED_POINTS, Reach, check_count
 
 MAP_CLUSTER_ID = -1  # the cluster of a known map's walls (the sensing stage's ids count from 0)
+_TIGHTER_M = (0.05, 0.025, 0.0125)  # tolerances an ellipse holding a goal is refitted at in turn
+_GOAL_LEVEL_MARGIN = 0.02  # ... until every goal is at least at this level above 1 (the planner's start margin)
 
 
 @dataclass(frozen=True)
@@ -85,20 +87,27 @@ class EllipsoidsConfig:
 @dataclass(frozen=True)
 class _Fitted:
     """One ellipse of a cluster's cover, grown, and the samples grouping bounds its gaps with; `leaf`: the
-    tiled cover's piece it was made from (itself, or one its growth split: `grown_cover`)."""
+    tiled cover's piece it was made from (itself, or one its growth split: `grown_cover`); `points`: the
+    sensed points its fit covers (none for a map's wall)."""
 
     ellipse: Ellipse
     grown: Ellipse
     samples: np.ndarray
     leaf: Ellipse
+    points: np.ndarray
 
 
 _Cover = tuple[list[Piece], list[_Fitted]]  # a cover's split trees and its ellipses, fitted
 
 
 class EllipsoidsStage:
-    def __init__(self, *, config: EllipsoidsConfig) -> None:
+    def __init__(self, *, config: EllipsoidsConfig, goals: np.ndarray | None = None) -> None:
         self.config = config
+        # The goals (the scenario's, or the newest ``Goals``) and how many the robot has reached: an
+        # ellipse holding one ahead is fitted tighter (`_goals_freed`).
+        self.goals = np.zeros((0, 2)) if goals is None else np.asarray(goals, dtype=float).reshape(-1, 2)
+        self.goals_reached = 0
+        self._freed: dict[int, tuple[_Fitted, bytes, list[_Fitted]]] = {}  # the last message's, by the ellipse refitted
         self._fits: OrderedDict[bytes, _Cover] = OrderedDict()  # a cluster's or a tile's cover, by content
         # The previous message's covers: their pieces (by cell) and their ellipses (by identity).
         self._cells: dict[Cell, list[Piece]] = {}
@@ -113,7 +122,7 @@ class EllipsoidsStage:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> EllipsoidsStage:
-        return cls(config=EllipsoidsConfig.from_scenario(scenario))
+        return cls(config=EllipsoidsConfig.from_scenario(scenario), goals=scenario.goals_array)
 
     def _cover(self, points: np.ndarray, *, cells: dict[Cell, list[Piece]]) -> list[_Fitted]:
         """A cluster's cover, tile by tile, each cached by its points' content (the cluster's too: most
@@ -157,8 +166,50 @@ class EllipsoidsStage:
         known = self._fitted.get(id(piece.ellipse))
         if known is not None and known[0].leaf is piece.ellipse:
             return known
-        pairs = grown_cover(piece, self.config.inflation_m, near, tolerance_m=self.config.tolerance_m)
-        return [_Fitted(ellipse=fit, grown=grown, samples=gap_samples(fit), leaf=piece.ellipse) for fit, grown in pairs]
+        return self._fitted_of(piece.points, piece.ellipse, leaf=piece.ellipse, near=near,
+                               tolerance_m=self.config.tolerance_m)
+
+    def _fitted_of(self, points: np.ndarray, fit: Ellipse, *, leaf: Ellipse, near: cKDTree,
+                   tolerance_m: float) -> list[_Fitted]:
+        made = grown_cover(points, fit, self.config.inflation_m, near, tolerance_m=tolerance_m)
+        return [_Fitted(ellipse=part_fit, grown=grown, samples=gap_samples(part_fit), leaf=leaf, points=part)
+                for part, part_fit, grown in made]
+
+    def _goals_freed(self, fitted: list[_Fitted], cluster_ids: list[int]) -> tuple[list[_Fitted], list[int]]:
+        """The sensed ellipses with those whose growth holds a goal ahead fitted again, to each of
+        `_TIGHTER_M` in turn, until none of theirs does (each judged against its own points).
+
+        A goal set a centimetre or two beyond the margin from a wall lies within the tolerance the growths
+        may stray beyond it, and no plan can end inside an ellipse; `cvxnav plan` refits the map's pieces
+        there (`GridCover.tighten`), and so does this stage the sensed ones. A goal truly within the
+        margin of a sensed point stays inside at every tolerance.
+        """
+        goals = self.goals[self.goals_reached:]
+        if not len(goals) or not fitted:
+            return fitted, cluster_ids
+        grown = EllipseStack.of([f.grown for f in fitted])
+        holding = set(np.flatnonzero(np.any(grown.levels(goals) <= 1.0 + _GOAL_LEVEL_MARGIN, axis=0)).tolist())
+        if not holding:
+            return fitted, cluster_ids
+        key = goals.tobytes()
+        out, ids, freed = [], [], {}
+        for k, (f, cid) in enumerate(zip(fitted, cluster_ids)):
+            made = [f]
+            if k in holding and len(f.points):
+                known = self._freed.get(id(f))
+                if known is not None and known[0] is f and known[1] == key:
+                    made = known[2]
+                else:
+                    near = cKDTree(f.points)
+                    for tolerance in _TIGHTER_M:
+                        made = self._fitted_of(f.points, f.ellipse, leaf=f.leaf, near=near, tolerance_m=tolerance)
+                        if EllipseStack.of([m.grown for m in made]).levels(goals).min() > 1.0 + _GOAL_LEVEL_MARGIN:
+                            break
+                freed[id(f)] = (f, key, made)
+            out += made
+            ids += [cid] * len(made)
+        self._freed = freed
+        return out, ids
 
     def _take_map(self, message: Map) -> None:
         """A new map: its wall cover replaces the old one, fitted as the robot comes near. The same map
@@ -200,7 +251,8 @@ class EllipsoidsStage:
     def _map_fit(self, piece: GridPiece) -> _Fitted:
         known = self._map_fits.get(id(piece))
         if known is None:
-            known = _Fitted(ellipse=piece.raw, grown=piece.grown, samples=gap_samples(piece.raw), leaf=piece.raw)
+            known = _Fitted(ellipse=piece.raw, grown=piece.grown, samples=gap_samples(piece.raw), leaf=piece.raw,
+                            points=np.zeros((0, 2)))
             self._map_fits[id(piece)] = known
         return known
 
@@ -211,6 +263,12 @@ class EllipsoidsStage:
         if isinstance(message, RobotState):
             self.config.reach.check_pose(message.pose, what="state")
             self.position = np.array([message.pose.x_m, message.pose.y_m])
+            self.goals_reached = message.goals_reached
+            return []
+        if isinstance(message, Goals):
+            goals = np.asarray(message.goals, dtype=float).reshape(-1, 2)
+            self.config.reach.check_goals(goals, what="goals")
+            self.goals, self.goals_reached = goals, 0
             return []
         if not isinstance(message, Clusters):
             raise StageInputError(f"ellipsoids does not handle {topic!r}")
@@ -234,6 +292,7 @@ class EllipsoidsStage:
         self._fitted = {}
         for f in fitted:
             self._fitted.setdefault(id(f.leaf), []).append(f)
+        fitted, cluster_ids = self._goals_freed(fitted, cluster_ids)
         walls = self._map_walls(room=MAX_ELLIPSES - len(fitted))
         fitted.extend(walls)
         cluster_ids.extend([MAP_CLUSTER_ID] * len(walls))

@@ -17,7 +17,7 @@ from services.ellipsoids.cover import (
     tiled_cover,
     tiles,
 )
-from schemas.messages import ClusterMsg, Clusters, Header
+from schemas.messages import ClusterMsg, Clusters, Goals, Header, Pose2D, RobotState
 from services.ellipsoids.mvee import mvee, mvee_fast
 from schemas.scenario import parse_scenario
 from services.ellipsoids.stage import EllipsoidsStage
@@ -202,3 +202,36 @@ def test_sensed_door_jambs_leave_a_door_the_robot_fits_through_open():
     angle = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
     within = (sensed[:, None, :] + margin * np.stack([np.cos(angle), np.sin(angle)], axis=1)[None]).reshape(-1, 2)
     assert np.all(grown.levels(within).min(axis=1) <= 1.0 + 1e-9)
+
+
+def test_a_sensed_wall_lets_out_a_goal_just_beyond_the_margin_and_holds_one_within_it():
+    """A wall's face at y = 0 seen 5 cm apart; goals 1.5 cm beyond the 0.45 m margin and 5 cm within it.
+    The growths may stray up to the tolerance (0.1 m) beyond the margin and held the first; the pieces
+    holding a goal ahead are fitted tighter until none does, and the second stays inside at every
+    tolerance. The goals are the scenario's until a `Goals` message replaces them, and those the robot
+    has reached no longer count."""
+    doc = {"format": "cvxnav.scenario/1", "name": "wall", "bounds": {"min": [-1.0, -1.0], "max": [12.0, 6.0]},
+           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
+                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
+           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
+           "start": {"x": 4.0, "y": 3.0, "theta": 0.0}, "goals": [[4.2, 0.465]], "obstacles": [], "expect": "reach"}
+    scenario = parse_scenario(json.dumps(doc), source="wall")
+    wall = Clusters(header=Header(stamp_s=0.0, seq=0), scan_seq=0,
+                    clusters=[ClusterMsg(cluster_id=0, points=[(float(x), 0.0) for x in np.arange(1.0, 8.0, 0.05)])])
+
+    def levels(stage: EllipsoidsStage, points) -> np.ndarray:
+        (_, out), = stage.process(topic="clusters", message=wall, now_s=0.0)
+        grown = EllipseStack(A=np.array([e.A for e in out.ellipsoids]), b=np.array([e.b for e in out.ellipsoids]))
+        return grown.levels(np.array(points)).min(axis=1)
+
+    beyond, within = (4.2, 0.465), (5.0, 0.4)
+    untightened = EllipsoidsStage.from_scenario(scenario.model_copy(update={"goals": [(9.0, 3.0)]}))
+    assert levels(untightened, [beyond])[0] <= 1.0  # held by the cover grown to the tolerance
+    stage = EllipsoidsStage.from_scenario(scenario)
+    assert levels(stage, [beyond])[0] > 1.0
+    stage.process(topic="goals", message=Goals(header=Header(stamp_s=0.0, seq=0), goals=[within, beyond]), now_s=0.0)
+    assert levels(stage, [within])[0] <= 1.0
+    state = RobotState(header=Header(stamp_s=0.0, seq=0), pose=Pose2D(x_m=4.0, y_m=3.0, theta_rad=0.0),
+                       speed_mps=0.0, steering_rad=0.0, goal_index=1, goals_reached=1, done=False)
+    stage.process(topic="state", message=state, now_s=0.0)
+    assert levels(stage, [beyond])[0] > 1.0
