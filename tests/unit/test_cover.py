@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -17,9 +15,9 @@ from services.ellipsoids.cover import (
     tiled_cover,
     tiles,
 )
+from depot_car import depot_car_scenario
 from schemas.messages import ClusterMsg, Clusters, Goals, Header, Pose2D, RobotState
 from services.ellipsoids.mvee import mvee, mvee_fast
-from schemas.scenario import parse_scenario
 from services.ellipsoids.stage import EllipsoidsStage
 from services.geometry import EllipseStack
 
@@ -185,12 +183,7 @@ def test_sensed_door_jambs_leave_a_door_the_robot_fits_through_open():
     and the two closed it (level 0.986 at its middle); grown to stray at most the tolerance beyond the
     margin from the wall's points (`grown_cover`), the way through the door's middle is outside every
     grown ellipse. Every point within the margin of a sensed point is still inside one."""
-    doc = {"format": "cvxnav.scenario/1", "name": "room", "bounds": {"min": [0.0, 0.0], "max": [12.0, 6.0]},
-           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
-                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
-           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
-           "start": {"x": 1.5, "y": 3.0, "theta": 0.0}, "goals": [[11.0, 3.0]], "obstacles": [], "expect": "reach"}
-    scenario = parse_scenario(json.dumps(doc), source="room")
+    scenario = depot_car_scenario(bounds=((0.0, 0.0), (12.0, 6.0)), start=(1.5, 3.0, 0.0), goals=[(11.0, 3.0)])
     margin = scenario.inflation_m
     clusters = _door_clusters(2 * margin + 0.2)
     (_, out), = EllipsoidsStage.from_scenario(scenario).process(topic="clusters", message=clusters, now_s=0.0)
@@ -210,12 +203,7 @@ def test_a_sensed_wall_lets_out_a_goal_just_beyond_the_margin_and_holds_one_with
     holding a goal ahead are fitted tighter until none does, and the second stays inside at every
     tolerance. The goals are the scenario's until a `Goals` message replaces them, and those the robot
     has reached no longer count."""
-    doc = {"format": "cvxnav.scenario/1", "name": "wall", "bounds": {"min": [-1.0, -1.0], "max": [12.0, 6.0]},
-           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
-                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
-           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
-           "start": {"x": 4.0, "y": 3.0, "theta": 0.0}, "goals": [[4.2, 0.465]], "obstacles": [], "expect": "reach"}
-    scenario = parse_scenario(json.dumps(doc), source="wall")
+    scenario = depot_car_scenario(bounds=((-1.0, -1.0), (12.0, 6.0)), start=(4.0, 3.0, 0.0), goals=[(4.2, 0.465)])
     wall = Clusters(header=Header(stamp_s=0.0, seq=0), scan_seq=0,
                     clusters=[ClusterMsg(cluster_id=0, points=[(float(x), 0.0) for x in np.arange(1.0, 8.0, 0.05)])])
 

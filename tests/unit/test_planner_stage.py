@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from depot_car import depot_car_scenario
 from schemas.messages import Ellipsoids, Goals, Header, Pose2D, RawPath, RobotState
 from schemas.scenario import bundled_scenario, load_scenario, parse_scenario
 from services.contract import Notice, StageInputError
@@ -321,12 +322,7 @@ def test_a_plan_keeps_the_guards_floor_from_the_maps_bounds():
     bounds, as from a wall; the online margin (level 1.1) alone would push the plan to 0.33 m from the
     edge, a plan the guard refuses scan after scan while the car brakes. The plan keeps the floor, and the
     curve the smoother makes of it is one the guard drives."""
-    doc = {"format": "cvxnav.scenario/1", "name": "room", "bounds": {"min": [0.0, 0.0], "max": [12.0, 6.0]},
-           "robot": {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
-                     "max_steering_angle": 0.6, "max_steering_rate": 0.5},
-           "sensor": {"fov_deg": 180, "range": 5.0, "rays": 181, "rate_hz": 10}, "goal_tolerance": 0.3,
-           "start": {"x": 1.5, "y": 3.0, "theta": 0.0}, "goals": [[11.0, 3.0]], "obstacles": [], "expect": "reach"}
-    scenario = parse_scenario(json.dumps(doc), source="room")
+    scenario = depot_car_scenario(bounds=((0.0, 0.0), (12.0, 6.0)), start=(1.5, 3.0, 0.0), goals=[(11.0, 3.0)])
     planner = PlannerStage.from_scenario(scenario)
     robot = RobotState(header=Header(stamp_s=0.0, seq=0), pose=Pose2D(x_m=1.5, y_m=3.0, theta_rad=0.0), speed_mps=0.0,
                        steering_rad=0.0, goal_index=0, goals_reached=0, done=False)
