@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from schemas.messages import ClusterMsg, Clusters, EllipsoidMsg, Ellipsoids, Header, Pose2D, RawPath, RobotState, Scan
+from schemas.messages import (ClusterMsg, Clusters, EllipsoidMsg, Ellipsoids, Goals, Header, Pose2D, RawPath, RobotState,
+                              Scan)
 from schemas.scenario import bundled_scenario
 from services.contract import StageInputError
 from services.ellipsoids.stage import EllipsoidsStage
@@ -119,6 +120,15 @@ def test_planner_keeps_its_state_when_a_state_is_absurd(message, match):
     held = planner.robot_state
     one_line_rejection(planner, "state", message, match)
     assert planner.robot_state is held
+
+
+@pytest.mark.parametrize(("stage", "goals_of"), [(PlannerStage, lambda core: core.config.goals),
+                                                  (EllipsoidsStage, lambda core: core.goals)], ids=["planner", "ellipsoids"])
+def test_goals_outside_the_map_are_refused_and_the_old_ones_stay(stage, goals_of):
+    core = stage.from_scenario(SCENARIO)
+    far = Goals(header=HEADER, goals=[(4.0, 1.0), (FAR, 0.0)])
+    one_line_rejection(core, "goals", far, r"goals: goal 1: pose \(.*\) is outside the map bounds")
+    assert np.array_equal(goals_of(core), SCENARIO.goals_array)
 
 
 def test_smoother_rejects_oversized_and_off_map_paths():
