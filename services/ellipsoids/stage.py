@@ -30,6 +30,11 @@ smoother and the path guard keep the margin from the map's walls as from sensed 
 change of theirs; beyond the window the plan is what it is beyond a scan's reach, replanned as the
 robot comes nearer. A new map replaces the cover; the ellipses sent are at most `MAX_ELLIPSES`, the
 walls nearest the robot first.
+
+The stage reads the goals (the scenario's, then each ``Goals``; those the newest state says are reached
+no longer count): a sensed piece or a map's piece whose growth holds a goal ahead is fitted again
+tighter until none does (`_goals_freed`, `GridCover.tighten`), so a goal a centimetre or two beyond the
+margin from a wall can be planned to, as `cvxnav plan` plans to it.
 """
 
 from __future__ import annotations
@@ -118,6 +123,7 @@ class EllipsoidsStage:
         self._map_fits: dict[int, _Fitted] = {}  # by piece
         # Every fitted piece's fit, centre and reach, as of a count of fitted tiles (the cover only grows).
         self._map_index: tuple[int, list[_Fitted], np.ndarray, np.ndarray] | None = None
+        self._map_tightened_for: tuple[int, bytes] | None = None  # the tile count and goals last tightened for
         self.position: np.ndarray | None = None  # the robot's, from the newest state
 
     @classmethod
@@ -228,6 +234,7 @@ class EllipsoidsStage:
                                   f"more than {reach.margin_m:g} m outside the map bounds")
         self._map_message = message
         self.map, self._map_fits, self._map_index = GridCover(grid, margin_m=self.config.inflation_m), {}, None
+        self._map_tightened_for = None
 
     def _map_walls(self, *, room: int) -> list[_Fitted]:
         """The map's wall ellipses whose grown ellipse comes within the window of the robot, nearest first,
@@ -238,6 +245,13 @@ class EllipsoidsStage:
             return []
         window = self.config.map_window_m
         self.map.pieces(self.map.tiles_near(self.position[None, :], window + self.map.reach_m))
+        # The pieces holding a goal ahead fitted tighter (`GridCover.tighten`), once per set of tiles and goals.
+        goals = self.goals[self.goals_reached:]
+        tightened_for = (len(self.map.fitted), goals.tobytes())
+        if len(goals) and tightened_for != self._map_tightened_for:
+            self._map_tightened_for = tightened_for
+            if self.map.tighten(goals):
+                self._map_index = None
         if self._map_index is None or self._map_index[0] != len(self.map.fitted):
             fits = [self._map_fit(piece) for tile in self.map.fitted.values() for piece in tile]
             centres = np.array([f.grown.center for f in fits]).reshape(-1, 2)

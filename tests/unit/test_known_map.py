@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from depot_car import depot_car_scenario
 from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, RobotState
 from schemas.occupancy import FREE, OccupancyGrid, load_map
 from schemas.scenario import load_scenario
@@ -51,9 +52,10 @@ def state(seq: int, pose: Pose2D = START) -> RobotState:
                       done=False)
 
 
-def ellipsoids_with_map(stage: EllipsoidsStage, grid: OccupancyGrid, *, seq: int = 0, clusters=()) -> object:
+def ellipsoids_with_map(stage: EllipsoidsStage, grid: OccupancyGrid, *, seq: int = 0, clusters=(),
+                        pose: Pose2D = START) -> object:
     stage.process(topic="map", message=grid_to_msg(grid, header=header(0)), now_s=0.0)
-    stage.process(topic="state", message=state(seq), now_s=0.0)
+    stage.process(topic="state", message=state(seq, pose), now_s=0.0)
     (_, out), = stage.process(topic="clusters", message=Clusters(header=header(seq), scan_seq=seq,
                                                                   clusters=list(clusters)), now_s=0.0)
     return out
@@ -117,3 +119,25 @@ def test_a_map_off_the_scenarios_bounds_is_refused_and_the_one_held_stays(scenar
                                                r"outside the map bounds"):
         stage.process(topic="map", message=grid_to_msg(far, header=header(1)), now_s=0.0)
     assert stage.map is cover
+
+
+def test_a_goal_just_beyond_the_margin_from_a_map_wall_is_let_out_and_one_within_it_held():
+    """A map with a wall along its bottom row; goals 1.5 cm beyond the depot car's margin from it and 5 cm
+    within. The map's cover may stray up to its tolerance (0.1 m) beyond the margin and held the first, so
+    no plan could end there; the stage fits the pieces holding a goal ahead tighter, as `cvxnav plan` does
+    (`GridCover.tighten`), and the second stays held."""
+    mask = np.zeros((120, 240), dtype=bool)
+    mask[0, :] = True  # y from 0 to 0.05 m
+    grid = OccupancyGrid.from_mask(mask, resolution_m=0.05, source="wall")
+    beyond, within = (5.5, 0.05 + 0.45 + 0.015), (6.0, 0.05 + 0.4)
+
+    def levels(goals, point) -> float:
+        scenario = depot_car_scenario(bounds=((0.0, 0.0), (12.0, 6.0)), start=(4.0, 3.0, 0.0), goals=goals)
+        stage = EllipsoidsStage.from_scenario(scenario)
+        out = ellipsoids_with_map(stage, grid, pose=Pose2D(x_m=4.0, y_m=3.0, theta_rad=0.0))
+        walls = [e for e in out.ellipsoids if e.cluster_id == MAP_CLUSTER_ID]
+        return float(EllipseStack.of(ellipses_from_msgs(walls)).levels(np.array([point])).min())
+
+    assert levels([(9.0, 3.0)], beyond) <= 1.0  # held by the cover fitted to its tolerance
+    assert levels([beyond], beyond) > 1.0
+    assert levels([within], within) <= 1.0
