@@ -146,17 +146,29 @@ def grown_near(ellipse: Ellipse, margin_m: float, points: cKDTree, *, growths: i
     f1, f2 = np.sqrt(np.maximum(squared, 1e-12)) / margin_m
     p = np.concatenate([[least_area_growth(squared, margin_m)], np.geomspace(f2, f1, growths)])
     semi = np.sqrt((1.0 + 1.0 / p)[:, None] * squared + ((1.0 + p) * margin_m**2)[:, None])  # (candidates, 2)
-    # Each candidate's boundary at as many angles as its perimeter (≥ π (a₁ + a₂)) needs, queried all at once.
-    counts = np.clip(np.ceil(np.pi * semi.sum(axis=1) / spacing_m), 32, 2048).astype(np.intp)
-    offsets = np.cumsum(counts) - counts
-    owner = np.repeat(np.arange(len(p)), counts)
-    angle = 2.0 * np.pi * (np.arange(len(owner)) - offsets[owner]) / counts[owner]
-    local = semi[owner] * np.column_stack([np.cos(angle), np.sin(angle)])
-    excess = np.maximum.reduceat(points.query(ellipse.center + local @ R.T)[0], offsets) - margin_m
-    best = int(np.argmin(excess))
-    if excess[0] - excess[best] < _PREFER_LEAST_M:
-        best = 0
-    return ellipse.grown(margin_m, p=float(p[best])), float(excess[best])
+
+    def excess(k: np.ndarray) -> np.ndarray:
+        """Candidates k's boundaries, each at as many angles as its perimeter (≥ π (a₁ + a₂)) needs."""
+        counts = np.clip(np.ceil(np.pi * semi[k].sum(axis=1) / spacing_m), 32, 2048).astype(np.intp)
+        offsets = np.cumsum(counts) - counts
+        owner = np.repeat(k, counts)
+        angle = 2.0 * np.pi * (np.arange(len(owner)) - np.repeat(offsets, counts)) / np.repeat(counts, counts)
+        local = semi[owner] * np.column_stack([np.cos(angle), np.sin(angle)])
+        return np.maximum.reduceat(points.query(ellipse.center + local @ R.T)[0], offsets) - margin_m
+
+    least = float(excess(np.array([0]))[0])
+    # A small p's growth of a thin fit has tips many times its length: where even the ends of its axes
+    # stray further than the least-area growth does anywhere, it cannot be taken, and is not sampled.
+    ends = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    reach = points.query(ellipse.center + (semi[1:, None, :] * ends[None]) @ R.T)[0].max(axis=1) - margin_m
+    others = 1 + np.flatnonzero(reach < least - _PREFER_LEAST_M)
+    if not len(others):
+        return ellipse.grown(margin_m, p=float(p[0])), least
+    strays = excess(others)
+    best = int(np.argmin(strays))
+    if least - strays[best] < _PREFER_LEAST_M:
+        return ellipse.grown(margin_m, p=float(p[0])), least
+    return ellipse.grown(margin_m, p=float(p[others[best]])), float(strays[best])
 
 
 def grown_cover(part: FloatArray, fit: Ellipse, margin_m: float, points: cKDTree, *, tolerance_m: float = 0.1,

@@ -60,6 +60,7 @@ from services.geometry import Ellipse, EllipseStack
 from services.limits import MAX_ELLIPSES, MAX_SENSED_POINTS, Reach, check_count
 
 MAP_CLUSTER_ID = -1  # the cluster of a known map's walls (the sensing stage's ids count from 0)
+_HALO_M = 1.0  # a tile's pieces are grown judged against the cluster's points this far round it too
 _TIGHTER_M = (0.05, 0.025, 0.0125)  # tolerances an ellipse holding a goal is refitted at in turn
 _GOAL_LEVEL_MARGIN = 0.02  # ... until every goal is at least at this level above 1 (the planner's start margin)
 
@@ -133,7 +134,7 @@ class EllipsoidsStage:
     def _cover(self, points: np.ndarray, *, cells: dict[Cell, list[Piece]]) -> list[_Fitted]:
         """A cluster's cover, tile by tile, each cached by its points' content (the cluster's too: most
         clusters are unchanged from one message to the next); its split trees go into `cells`."""
-        roots, fitted = self._cached(points, lambda: self._tiled(points))
+        roots, fitted = self._cached(b"cluster" + points.tobytes(), lambda: self._tiled(points))
         stack = list(roots)
         while stack:
             node = stack.pop()
@@ -142,22 +143,31 @@ class EllipsoidsStage:
         return fitted
 
     def _tiled(self, points: np.ndarray) -> tuple[list[Piece], list[_Fitted]]:
+        """A cluster's cover tile by tile, each cached by the content of its points and of the cluster's
+        points within `_HALO_M` of it, which its pieces' growths are judged against (`grown_cover`: a wall
+        runs on past the tile's edge, and a growth's tip along it is no excess)."""
         roots: list[Piece] = []
         fitted: list[_Fitted] = []
         for cell, tile_points in tiles(points, tile_m=self.config.tile_m):
-            tile_roots, tile_fitted = self._cached(tile_points, lambda: self._tile(tile_points, cell=cell))
+            x0, y0, x1, y1 = cell
+            h = _HALO_M
+            near = points[(points[:, 0] >= x0 - h) & (points[:, 0] < x1 + h)
+                          & (points[:, 1] >= y0 - h) & (points[:, 1] < y1 + h)]
+            key = b"tile" + np.array(cell).tobytes() + near.tobytes()  # the tile's points are the near ones in the cell
+            tile_roots, tile_fitted = self._cached(key, lambda: self._tile(tile_points, near=near, cell=cell))
             roots.extend(tile_roots)
             fitted.extend(tile_fitted)
         return roots, fitted
 
-    def _tile(self, points: np.ndarray, *, cell: Cell) -> tuple[list[Piece], list[_Fitted]]:
+    def _tile(self, points: np.ndarray, *, near: np.ndarray, cell: Cell) -> tuple[list[Piece], list[_Fitted]]:
         cover = tiled_cover(points, cell=cell, previous=self._cells, tolerance_m=self.config.tolerance_m,
                             max_pieces=self.config.max_pieces)
-        tree = cKDTree(points)
+        tree = cKDTree(near)
         return [cover.root], [fitted for piece in cover.pieces for fitted in self._fit(piece, near=tree)]
 
-    def _cached(self, points: np.ndarray, make: Callable[[], _Cover]) -> _Cover:
-        digest = hashlib.blake2b(points.tobytes(), digest_size=16).digest()
+    def _cached(self, key: bytes, make: Callable[[], _Cover]) -> _Cover:
+        """The cover cached under `key` (a cluster's, or a tile's: they are told apart by a tag), else made."""
+        digest = hashlib.blake2b(key, digest_size=16).digest()
         if digest in self._fits:
             self._fits.move_to_end(digest)
             return self._fits[digest]

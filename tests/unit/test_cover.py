@@ -223,3 +223,25 @@ def test_a_sensed_wall_lets_out_a_goal_just_beyond_the_margin_and_holds_one_with
                        speed_mps=0.0, steering_rad=0.0, goal_index=1, goals_reached=1, done=False)
     stage.process(topic="state", message=state, now_s=0.0)
     assert levels(stage, [beyond])[0] > 1.0
+
+
+def test_a_cluster_across_a_tile_edge_is_covered_in_both_tiles_message_after_message():
+    """A short wall across the edge of two of the stage's tiles (x = 4 m), within each other's halo: the
+    tiles' covers are cached apart (each by its cell and the points near it), so every sensed point is
+    inside a grown ellipse with the margin round it, as a fresh stage covers it, however often the same
+    or a grown cluster comes again."""
+    scenario = depot_car_scenario(bounds=((0.0, -2.0), (12.0, 6.0)), start=(1.0, 3.0, 0.0), goals=[(11.0, 3.0)])
+    stage = EllipsoidsStage.from_scenario(scenario)
+    margin = scenario.inflation_m
+    angle = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
+    ring = margin * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    for end in (4.3, 4.3, 4.35, 4.4):
+        wall = [(float(x), 1.0) for x in np.arange(3.7, end + 1e-9, 0.05)]
+        message = Clusters(header=Header(stamp_s=0.0, seq=0), scan_seq=0,
+                           clusters=[ClusterMsg(cluster_id=0, points=wall)])
+        (_, out), = stage.process(topic="clusters", message=message, now_s=0.0)
+        (_, fresh), = EllipsoidsStage.from_scenario(scenario).process(topic="clusters", message=message, now_s=0.0)
+        grown = EllipseStack(A=np.array([e.A for e in out.ellipsoids]), b=np.array([e.b for e in out.ellipsoids]))
+        within = (np.array(wall)[:, None, :] + ring[None]).reshape(-1, 2)
+        assert np.all(grown.levels(within).min(axis=1) <= 1.0 + 1e-9)
+        assert len(out.ellipsoids) == len(fresh.ellipsoids)
