@@ -72,6 +72,7 @@ import ctypes
 import json
 import logging
 import os
+import random
 import shutil
 import signal
 import socket
@@ -102,18 +103,47 @@ from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh
 logger = logging.getLogger(__name__)
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 _SPARE_STAGGER_S = 1.0  # between the starts of two warm spares: each spends about a second of CPU
+_PORTS_FROM = 20_000  # free_ports draws from here to the ephemeral range: above the well-known services
 
 
 class PipelineError(Exception):
     """The pipeline itself failed (a stage died or never came up): one line, exit code 4."""
 
 
-def free_ports(count: int) -> list[int]:
-    """Distinct free TCP ports on 127.0.0.1 (held open together so none is handed out twice)."""
-    probes = [socket.socket() for _ in range(count)]
+def _ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (Linux's default where it cannot be read)."""
     try:
-        for probe in probes:
-            probe.bind(("127.0.0.1", 0))
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def free_ports(count: int) -> list[int]:
+    """Distinct free TCP ports on 127.0.0.1 for the stages to listen on, held open together so none is
+    handed out twice, drawn at random below the kernel's ephemeral range.
+
+    A port the kernel hands out (bind to port 0) is an ephemeral one, and between this check and the
+    stage binding it any outgoing connection on the machine may be given it (a suite's other worker
+    took one so: the stage could not listen). Below the range only an explicit bind takes a port. Where
+    none is free there, the kernel's choice is the fallback.
+    """
+    rng = random.SystemRandom()
+    candidates = rng.sample(range(_PORTS_FROM, max(_PORTS_FROM + 1, _ephemeral_low())), k=4 * count + 64)
+    probes: list[socket.socket] = []
+    try:
+        for port in candidates:
+            if len(probes) == count:
+                break
+            probe = socket.socket()
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                probe.close()
+                continue
+            probes.append(probe)
+        while len(probes) < count:
+            probes.append(socket.socket())
+            probes[-1].bind(("127.0.0.1", 0))
         return [probe.getsockname()[1] for probe in probes]
     finally:
         for probe in probes:

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import math
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,6 +21,7 @@ import pytest
 import zenoh
 from pydantic import BaseModel
 
+from cvxnav.supervisor import free_ports
 from schemas.messages import ClusterMsg, Clusters, Header, Pose2D, RobotState, Scan, StageStatus, decode
 from schemas.wiring import alive_key, key, status_key
 from services.contract import StageInputError
@@ -33,9 +33,7 @@ MAX_PAYLOAD_BYTES = 4096
 
 
 def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    return free_ports(1)[0]
 
 
 def make_scan(*, seq: int, points: list[tuple[float, float]] | None = None, frame_id: str = "map") -> Scan:

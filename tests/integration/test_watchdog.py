@@ -5,7 +5,6 @@ one input holds the worker past the stall limit."""
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 import uuid
@@ -17,6 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from cvxnav.supervisor import free_ports
 from schemas.messages import Header, Pose2D, Scan
 from schemas.wiring import key
 from services.shell.stage import run_stage
@@ -52,9 +52,7 @@ def listen(notify: NotifySocket, *, for_s: float) -> list[str]:
 
 @contextmanager
 def watched_stage(core: HoldingSensing, notify: NotifySocket) -> Iterator[tuple[zenoh.Session, str]]:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_ports(1)[0]}"
     prefix, stop, ready, progress = f"test/{uuid.uuid4().hex[:8]}", threading.Event(), threading.Event(), Progress()
     keep_alive(watchdog=Watchdog(address=str(notify.path), interval_s=INTERVAL_S), progress=progress,
                stall_limit_s=STALL_LIMIT_S, stop_event=stop)
