@@ -5,9 +5,9 @@ pieces split across the middle of fixed cells, so they stay put as points are ad
 whose gap is narrower than the robot's passage 2·inflation are grouped (the paper's eq. 3), and every
 ellipse is grown by inflation = width/2 + safety_distance so the planner can treat the robot as a point:
 of the growths that contain the fit ⊕ disc(inflation), the one that strays least beyond the inflation
-from the tile's points, a piece split where even that strays more than the tolerance (`grown_cover`;
-the least-area growth of a wall is √2·inflation wide, and a door's jambs closed a door with 0.2 m to
-spare).
+from the cluster's points in and near the tile, a piece split where even that strays more than the
+tolerance (`grown_cover`; the least-area growth of a wall is √2·inflation wide, and a door's jambs
+closed a door with 0.2 m to spare).
 
 Covers, and the grown ellipses, are cached by content, a cluster's and each of its tiles': the sensing
 stage sends unchanged clusters byte-identical, and a cluster that grew has new points in a few tiles
@@ -113,7 +113,8 @@ class EllipsoidsStage:
         # ellipse holding one ahead is fitted tighter (`_goals_freed`).
         self.goals = np.zeros((0, 2)) if goals is None else np.asarray(goals, dtype=float).reshape(-1, 2)
         self.goals_reached = 0
-        self._freed: dict[int, tuple[_Fitted, bytes, list[_Fitted]]] = {}  # the last message's, by the ellipse refitted
+        # The last message's refits for the goals, by the ellipse refitted: (it, the goals, its refit).
+        self._freed: dict[int, tuple[_Fitted, bytes, list[_Fitted]]] = {}
         self._fits: OrderedDict[bytes, _Cover] = OrderedDict()  # a cluster's or a tile's cover, by content
         # The previous message's covers: their pieces (by cell) and their ellipses (by identity).
         self._cells: dict[Cell, list[Piece]] = {}
@@ -153,7 +154,7 @@ class EllipsoidsStage:
             h = _HALO_M
             near = points[(points[:, 0] >= x0 - h) & (points[:, 0] < x1 + h)
                           & (points[:, 1] >= y0 - h) & (points[:, 1] < y1 + h)]
-            key = b"tile" + np.array(cell).tobytes() + near.tobytes()  # the tile's points are the near ones in the cell
+            key = b"tile" + np.array(cell).tobytes() + near.tobytes()  # its points: the near ones in the cell
             tile_roots, tile_fitted = self._cached(key, lambda: self._tile(tile_points, near=near, cell=cell))
             roots.extend(tile_roots)
             fitted.extend(tile_fitted)
@@ -177,8 +178,8 @@ class EllipsoidsStage:
         return made
 
     def _fit(self, piece: Piece, *, near: cKDTree) -> list[_Fitted]:
-        """A piece's ellipses, grown to stray at most the tolerance beyond the margin from the tile's points
-        `near` where they can (`grown_cover`); those of the previous message's piece, if it is that one."""
+        """A piece's ellipses, grown to stray at most the tolerance beyond the margin from the points in and
+        near its tile (`near`) where they can (`grown_cover`); the previous message's, if it is that piece."""
         known = self._fitted.get(id(piece.ellipse))
         if known is not None and known[0].leaf is piece.ellipse:
             return known
