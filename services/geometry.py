@@ -449,6 +449,23 @@ def least_area_growth(squared_semi_axes: FloatArray, margin_m: float) -> float:
     return float(np.exp(brentq(slope, -40.0, 40.0, xtol=1e-12)))
 
 
+def growth_family(semi_axes: FloatArray, margin_m: float, count: int) -> FloatArray:
+    """Per fit of semi-axes f₁ ≥ f₂ (rows of `semi_axes`), `count` Kurzhanski–Vályi parameters p spaced
+    geometrically from f₂/r to f₁/r, (fits, count): a small p keeps the growth's width near r at the price
+    of long tips, a large one the reverse; the covers take the one that strays least (`grown_semi_axes`)."""
+    a, b = semi_axes[:, 0], semi_axes[:, 1]
+    lo, hi = np.maximum(b, 1e-6) / margin_m, np.maximum(a, 1e-6) / margin_m
+    steps = np.arange(count) / max(count - 1, 1)
+    return lo[:, None] * (hi / lo)[:, None] ** steps[None, :]
+
+
+def grown_semi_axes(semi_axes: FloatArray, p: FloatArray, margin_m: float) -> FloatArray:
+    """The semi-axes √((1 + 1/p) fᵢ² + (1 + p) r²) of the growths of parameter p (one per row of
+    `semi_axes`, broadcast against p's shape), each containing its fit ⊕ disc(r) (`Ellipse.grown`)."""
+    p = np.asarray(p, dtype=float)
+    return np.sqrt((1.0 + 1.0 / p)[..., None] * semi_axes**2 + ((1.0 + p) * margin_m * margin_m)[..., None])
+
+
 def keep_out_scales(semi_axes: ArrayLike, *, inflation_m: float, keep_m: float) -> FloatArray:
     """For ellipses grown by `inflation_m` from their fits: the least scale s ≤ 1 about its centre at which
     each still provably contains its fit grown by `keep_m` (so a path outside the scaled ellipse keeps

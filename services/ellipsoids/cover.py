@@ -21,8 +21,8 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from services.ellipsoids.mvee import FitError, IntArray, mvee_fast, mvee_fast_support
-from services.geometry import (Ellipse, FloatArray, as_complex, counter_clockwise, least_area_growth, ring_next,
-                               signed_area)
+from services.geometry import (Ellipse, FloatArray, as_complex, counter_clockwise, grown_semi_axes, growth_family,
+                               least_area_growth, ring_next, signed_area)
 
 __all__ = ["Cell", "Cover", "Piece", "cover_points", "cover_polygon", "excess_over_points", "excess_over_polygon",
            "grown_cover", "grown_near", "tiled_cover", "tiles"]
@@ -139,13 +139,12 @@ def grown_near(ellipse: Ellipse, margin_m: float, points: cKDTree, *, growths: i
     tips, which do no harm where they lie along the wall's own points (as the map's cover chooses its
     growths, `services.ellipsoids.grid_cover`). The candidates: the least-area growth, kept unless another
     strays `_PREFER_LEAST_M` less (so that points moved by a rounding, a map in UTM metres, choose alike),
-    and `growths` values of p from f₂/r to f₁/r (f the fit's semi-axes).
+    and the map cover's `growth_family` of the fit.
     """
     w, R = np.linalg.eigh(ellipse.A)
-    squared = 1.0 / w**2  # the fit's semi-axes², largest first
-    f1, f2 = np.sqrt(np.maximum(squared, 1e-12)) / margin_m
-    p = np.concatenate([[least_area_growth(squared, margin_m)], np.geomspace(f2, f1, growths)])
-    semi = np.sqrt((1.0 + 1.0 / p)[:, None] * squared + ((1.0 + p) * margin_m**2)[:, None])  # (candidates, 2)
+    fit = 1.0 / w  # the fit's semi-axes, largest first (its axes: R's columns)
+    p = np.concatenate([[least_area_growth(fit**2, margin_m)], growth_family(fit[None], margin_m, growths)[0]])
+    semi = grown_semi_axes(fit, p, margin_m)  # (candidates, 2)
 
     def excess(k: np.ndarray) -> np.ndarray:
         """Candidates k's boundaries, each at as many angles as its perimeter (≥ π (a₁ + a₂)) needs."""

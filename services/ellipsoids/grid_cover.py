@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from services.geometry import Ellipse, FloatArray
+from services.geometry import Ellipse, FloatArray, grown_semi_axes, growth_family
 from schemas.occupancy import OccupancyGrid
 
 IntArray = NDArray[np.intp]
@@ -344,11 +344,8 @@ class GridCover:
         interior two cells apart; a piece whose bound already exceeds the tolerance is split without that.
         """
         r, res = self.margin_m, self.grid.resolution_m
-        a, b = fit.semi_axes[:, 0], fit.semi_axes[:, 1]
-        lo, hi = np.maximum(b, 1e-6) / r, np.maximum(a, 1e-6) / r
-        steps = np.arange(self.settings.growths) / max(self.settings.growths - 1, 1)
-        p = lo[:, None] * (hi / lo)[:, None] ** steps[None, :]  # (P, G)
-        grown = np.sqrt((1.0 + 1.0 / p)[..., None] * fit.semi_axes[:, None, :] ** 2 + ((1.0 + p) * r * r)[..., None])
+        p = growth_family(fit.semi_axes, r, self.settings.growths)  # (P, G)
+        grown = grown_semi_axes(fit.semi_axes[:, None, :], p, r)
         P, G = p.shape
         rows = np.repeat(np.arange(P), G)
         bound = _sample_max(fit.centre[rows], fit.axes[rows], grown.reshape(-1, 2), boxes[rows], distance, res=res,
@@ -391,8 +388,7 @@ class GridCover:
             semi[over] *= (worst[over] / (1.0 - 2.0 * _PROOF_MARGIN))[:, None]  # aimed past the bound by its rounding
         else:
             raise AssertionError("a fitted ellipse does not contain its cells")
-        r = self.margin_m
-        grown_semi = np.sqrt((1.0 + 1.0 / p)[:, None] * semi**2 + ((1.0 + p) * r * r)[:, None])
+        grown_semi = grown_semi_axes(semi, p, self.margin_m)
         grown_A = _shape(axes, grown_semi)
         raw_Ab = np.concatenate([A, -np.einsum("kij,kj->ki", A, centre)[:, :, None]], axis=2)
         grown_Ab = np.concatenate([grown_A, -np.einsum("kij,kj->ki", grown_A, centre)[:, :, None]], axis=2)
