@@ -127,8 +127,8 @@ def free_ports(count: int) -> list[int]:
     took one so: the stage could not listen). Below the range only an explicit bind takes a port. Where
     none is free there, the kernel's choice is the fallback.
     """
-    rng = random.SystemRandom()
-    candidates = rng.sample(range(_PORTS_FROM, max(_PORTS_FROM + 1, _ephemeral_low())), k=4 * count + 64)
+    pool = range(_PORTS_FROM, max(_PORTS_FROM + 1, _ephemeral_low()))
+    candidates = random.SystemRandom().sample(pool, k=min(len(pool), 4 * count + 64))
     probes: list[socket.socket] = []
     try:
         for port in candidates:
