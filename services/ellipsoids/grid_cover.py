@@ -116,7 +116,6 @@ class GridCover:
     margin_m: float
     settings: GridCoverSettings = field(default_factory=GridCoverSettings)
     fitted: dict[Tile, list[GridPiece]] = field(default_factory=dict)
-    windows: list[DistanceWindow] = field(default_factory=list)  # one per batch of tiles fitted, in order
 
     def __post_init__(self) -> None:
         res = self.grid.resolution_m
@@ -229,7 +228,6 @@ class GridCover:
         parts, distances, start = [], [], 0
         for group in groups:
             window = self._window(group)
-            self.windows.append(window)
             distances.append(window.distance.reshape(-1))
             rows, cols = window.distance.shape
             for tile in group:

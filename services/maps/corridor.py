@@ -3,22 +3,22 @@
 A grid planner pays for the whole map (a distance transform and a Dijkstra over every cell). Here only
 what the query can use is built:
 
-1. A coarse search (`CoarseGrid`): the blocked cells pooled into coarse cells of side s (a coarse cell
-   is blocked when any of its cells is), the cells closer than r − s√2 to a blocked one (centre to
-   centre) closed too, by a dilation of that small grid, and Dijkstra (scipy.sparse.csgraph) over the
-   coarse cells a robot could be in. A coarse cell C holding a point x at
-   least r from every blocked cell is at least r − s√2 from the nearest blocked coarse cell C′ (centre to
-   centre): else, with q any blocked cell in C′, dist(x, q) ≤ s/√2 + dist(C, C′) + s/√2 < r. So the
-   coarse graph keeps every coarse cell a path can use and every step between neighbours it can take:
-   when it has no path, no path exists at all, and the planner says so. Its answer is the shortest path
-   and the corridor round it: every coarse cell on a path at most `slack` longer.
+1. A coarse search (`CoarseGrid`) over coarse cells of side s, Dijkstra (scipy.sparse.csgraph) over
+   those a robot could be in. A point x of a map cell is within half the cell's diagonal of its centre,
+   and a blocked square's nearest point is at least half a cell nearer than its centre, so x is r clear
+   only if the cell's centre is at least r + res/2 − res/√2 from every blocked cell's centre. The cells
+   nearer than that are closed (one dilation of the blocked mask, over the whole map: a few ms on a
+   building's 1.4 M cells), and a coarse cell is passable when one of its cells is open. A path at
+   clearance r runs through passable coarse cells only, from each to one sharing an edge or a corner,
+   so the coarse graph keeps every cell and step a path can use: when it has no path, no path exists
+   at all, and the planner says so. Its answer is the shortest path and the corridor round it: every
+   coarse cell on a path at most `slack` longer. (The coarse cells are as fine as the map's own can
+   tell them: a door the robot does not fit is closed in the coarse grid too, and the corridor never
+   runs through it.)
 2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor, its pieces
-   that hold the start or a goal fitted again tighter (`GridCover.tighten`). Fitting
-   them computes the distance transform there, which tells the coarse cells there apart more finely (a
-   coarse cell is kept only if one of its cells is within half a cell's diagonal of being r clear, which
-   still keeps every cell a path can use); the coarse search runs again, and again, until its corridor
-   lies in tiles already fitted. An optimistic coarse grid would otherwise send the corridor through a
-   door the robot does not fit.
+   that hold the start or a goal fitted again tighter (`GridCover.tighten`). A wall beside the corridor
+   lies up to the margin from its cells, its grown ellipses reach into it: the band is wider than the
+   corridor by about the margin.
 3. The exact route search and refinement (`services.planner.core.plan_until_verified`: tangent graph,
    convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, the route's
    tangent segments kept to the corridor (`_Corridor`): without that the route search, which sees no
@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from itertools import chain
 from typing import Literal
 
+import cv2
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse.csgraph import dijkstra
@@ -55,7 +56,7 @@ from scipy.spatial import cKDTree
 
 from services.geometry import Ellipse, EllipseStack, FloatArray
 from schemas.occupancy import OccupancyGrid
-from services.ellipsoids.grid_cover import DistanceWindow, GridCover, GridPiece, IntArray
+from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray
 from services.planner.core import PathPlan
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed
@@ -73,11 +74,10 @@ class CorridorSettings:
     # The corridor: coarse cells on a path at most this much longer than the shortest; above the graph's
     # metric error (2.7 %, `_STEPS`), which a route the optimum follows may be charged.
     slack: float = 0.03
-    band_m: float = 0.3  # tiles within this of the corridor are fitted before the first plan
+    band_m: float = 0.5  # tiles within this of the corridor are fitted before the first plan
     near_m: float = 0.2  # ... and their ellipses within this of it planned among
     keep_to_corridor: bool = True  # search the route within the corridor (see `_Corridor`)
     keep_m: float = 1.5  # the corridor keeps this much round the start and goals
-    max_searches: int = 12  # coarse searches at most while the corridor keeps leaving the fitted tiles
     max_rounds: int = 12  # plans at most while the path keeps meeting ellipses not planned among
 
 
@@ -105,7 +105,6 @@ class CoarseGrid:
     coarse_m: float
     passable: np.ndarray = field(init=False)
     _graph: tuple[np.ndarray, sparse.csr_array] | None = field(init=False, default=None)
-    _closed: bool = field(init=False, default=False)  # cells closed since the graph's weights were set
 
     def __post_init__(self) -> None:
         res = self.grid.resolution_m
@@ -115,56 +114,26 @@ class CoarseGrid:
         # Coarse cell (a, b) holds the map's cells from ((a − 1) k, (b − 1) k): a ring beyond the map.
         self.nr, self.nc = -(-rows // k) + 2, -(-cols // k) + 2
         blocked = self.grid.padded_blocked(slice(-k, (self.nr - 1) * k), slice(-k, (self.nc - 1) * k))
-        pooled = _pooled(blocked, k)
-        # Passable: at least margin − s√2 from every blocked coarse cell, centre to centre, i.e. no blocked
-        # cell at an offset (di, dj) with s √(di² + dj²) below that (the float square root of the same
-        # whole number a distance transform takes): a dilation of the blocked cells by those offsets.
-        reach = self.margin_m - self.s * _DIAGONAL
-        n = max(0, int(math.ceil(reach / self.s)))
+        # A point x of a cell c is at most ‖x − c‖ + ‖c − q‖ − res/2 ≤ ‖c − q‖ + res/√2 − res/2 from the
+        # square of a blocked cell q (centres c, q): no point of c is r clear when some blocked centre is
+        # nearer than r + res/2 − res/√2 to c's. Those cells are closed (a dilation of the blocked cells
+        # by the offsets that near, beyond the map blocked too), and a coarse cell is passable when one of
+        # its cells is open. (Offsets at exactly that distance are not taken: closing fewer is safe.)
+        reach = (self.margin_m + res * (0.5 - 1.0 / _DIAGONAL)) / res
+        n = max(0, int(math.ceil(reach)))
         di, dj = np.mgrid[-n : n + 1, -n : n + 1]
-        disc = np.sqrt((di * di + dj * dj).astype(float)) * self.s < reach
-        if not disc.any():
-            self.passable = np.ones(pooled.shape, dtype=bool)
-        elif disc.size == 1:
-            self.passable = ~pooled
-        else:
-            self.passable = ~ndimage.binary_dilation(pooled, structure=disc)
-
-    def refine(self, window: DistanceWindow, *, watch: np.ndarray | None = None) -> int:
-        """Close the coarse cells inside the window none of whose cells is within half a cell's diagonal
-        of being `margin_m` clear (the window's D bounds a cell centre's distance from above, and a point
-        of the cell is within half a diagonal of the centre); how many were closed (of those in the
-        `watch` mask, if one is given)."""
-        k, res = self.k, self.grid.resolution_m
-        rows, cols = window.distance.shape
-        # The coarse cells wholly inside the window: cell b spans map rows (b − 1) k … b k.
-        b0, b1 = max(-(-(window.row0 + k) // k), 0), min((window.row0 + rows + k) // k, self.nr)
-        a0, a1 = max(-(-(window.col0 + k) // k), 0), min((window.col0 + cols + k) // k, self.nc)
-        if b1 <= b0 or a1 <= a0:
-            return 0
-        r0, c0 = (b0 - 1) * k - window.row0, (a0 - 1) * k - window.col0
-        block = window.distance[r0 : r0 + (b1 - b0) * k, c0 : c0 + (a1 - a0) * k]
-        best = block.reshape(b1 - b0, k, a1 - a0, k).max(axis=(1, 3))
-        close = (best < self.margin_m - res / _DIAGONAL) & self.passable[b0:b1, a0:a1]
-        if close.any():
-            self.passable[b0:b1, a0:a1] &= ~close
-            self._closed = True
-        return int(close.sum() if watch is None else (close & watch[b0:b1, a0:a1]).sum())
+        disc = di * di + dj * dj < reach * reach * (1.0 - 1e-12)
+        disc[n, n] = True  # a blocked cell itself is never open
+        closed = cv2.dilate(blocked.view(np.uint8), disc.view(np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+        self.passable = _pooled(closed == 0, k)
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
-        """(coarse cell of each node, the graph): built once; a refinement only closes cells, so the edges
-        touching a closed one are then given an infinite weight (Dijkstra relaxes none of them)."""
+        """(coarse cell of each node, the graph), built once."""
         if self._graph is None:
             nodes = np.flatnonzero(self.passable)
             index = np.full(self.passable.shape, -1, dtype=np.int64)
             index.flat[nodes] = np.arange(len(nodes))
             self._graph = (nodes, _grid_graph(self.passable, index, self.s))
-        elif self._closed:
-            nodes, graph = self._graph
-            shut = ~self.passable.flat[nodes]
-            rows = np.repeat(np.arange(len(nodes)), np.diff(graph.indptr))
-            graph.data[shut[rows] | shut[graph.indices]] = np.inf
-        self._closed = False
         return self._graph
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
@@ -312,7 +281,7 @@ def _grid_graph(passable: np.ndarray, index: np.ndarray, step_m: float) -> spars
 class CorridorPlan:
     """What `plan_in_corridor` found: the plan and its smoothed curve (as `plan_until_verified`), the
     ellipses it was made among, the coarse route, how much of the map's cover was fitted, and how many
-    coarse searches and plans it took."""
+    plans it took."""
 
     plan: PathPlan
     smoothed: Smoothed | None
@@ -320,7 +289,6 @@ class CorridorPlan:
     coarse: CoarseRoute
     tiles_fitted: int
     tiles_total: int
-    searches: int
     rounds: int
     kept_to_corridor: bool = False  # the route was searched within the corridor (`_Corridor`)
 
@@ -348,30 +316,14 @@ def plan_in_corridor(
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
         coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m)
-    tiles: set = set()
     with timer("corridor"):
         coarse = coarse_grid.route(waypoints, slack=settings.slack)
-    searches = 1
-    while coarse.status == "ok":
-        with timer("fit"):
-            line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
-            new = cover.tiles_near(line, settings.band_m) - tiles
-            if not new:
-                break
-            tiles |= new
-            refined = len(cover.windows)
-            cover.pieces(new)
-        with timer("corridor"):
-            # The new tiles' distance transforms tell their coarse cells apart more finely; if none of
-            # the corridor's is closed, the shortest path and the corridor are what they were.
-            closed = [coarse_grid.refine(window, watch=coarse.cells) for window in cover.windows[refined:]]
-            if not any(closed) or searches >= settings.max_searches:
-                break
-            coarse = coarse_grid.route(waypoints, slack=settings.slack)
-            searches += 1
     if coarse.status != "ok":
         plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
-        return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, searches, 0)
+        return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, 0)
+    with timer("fit"):
+        line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
+        tiles = cover.tiles_near(line, settings.band_m)
     with timer("fit"):
         fitted = _pieces(cover, tiles, waypoints)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
@@ -413,7 +365,7 @@ def plan_in_corridor(
                         continue
             break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
-    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, searches, rounds, keep_to is not None)
+    return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, rounds, keep_to is not None)
 
 
 @dataclass(frozen=True)

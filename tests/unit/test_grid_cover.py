@@ -175,7 +175,7 @@ def test_a_tile_far_from_every_blocked_cell_has_no_pieces_and_a_finite_window():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert cover.pieces([middle]) == []
-    distance = cover.windows[-1].distance
+    distance = cover._window([middle]).distance
     assert np.isfinite(distance).all()
     assert distance.min() > (cover.reach_cells - 2) * 0.05  # above the margin plus the tolerance everywhere
 
