@@ -124,7 +124,8 @@ class CoarseGrid:
         di, dj = np.mgrid[-n : n + 1, -n : n + 1]
         disc = di * di + dj * dj < reach * reach * (1.0 - 1e-12)
         disc[n, n] = True  # a blocked cell itself is never open
-        closed = cv2.dilate(blocked.view(np.uint8), disc.view(np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+        closed = cv2.dilate(blocked.view(np.uint8), disc.view(np.uint8), borderType=cv2.BORDER_CONSTANT,
+                            borderValue=1)
         self.passable = _pooled(closed == 0, k)
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:

@@ -130,8 +130,11 @@ def test_run_streams_to_a_rerun_server_and_status_watches_through_the_router(tmp
     try:
         _wait_listening(rerun_port, server)
         _wait_listening(router_port, router)
+        # On the wall clock (--realtime) the run lasts its tour's half minute of sim, so that each poll of
+        # `cvxnav status` (a process start and a 1.5 s window) can find it going; in lockstep, on a machine
+        # busy with other tests, the run once ended between two polls that each missed it.
         with open(tmp_path / "run.log", "wb") as log:
-            run = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--out", "run.json",
+            run = subprocess.Popen([sys.executable, "-m", "cvxnav", "run", "--quiet", "--realtime", "--out", "run.json",
                                     "--connect", router_ep,
                                     "--viewer-url", f"rerun+http://127.0.0.1:{rerun_port}/proxy"],
                                    cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
