@@ -217,10 +217,11 @@ def _closed(blocked: np.ndarray, reach_cells: float) -> np.ndarray:
     return blocked | (np.rint(cells * cells) < limit)
 
 
-def _pooled(blocked: np.ndarray, k: int) -> np.ndarray:
-    """Which k × k blocks of the mask hold a blocked cell: an OR of the k rows of each block, then of the
-    k columns (numpy's `any` over the strided axes of a (rows, k, columns, k) view is ten times slower)."""
-    rows = blocked.reshape(-1, k, blocked.shape[1])
+def _pooled(mask: np.ndarray, k: int) -> np.ndarray:
+    """Which k × k blocks of the mask hold a set cell (the coarse grid's: an open one): an OR of the k rows
+    of each block, then of the k columns (numpy's `any` over the strided axes of a (rows, k, columns, k)
+    view is ten times slower)."""
+    rows = mask.reshape(-1, k, mask.shape[1])
     out = rows[:, 0].copy()
     for q in range(1, k):
         out |= rows[:, q]
