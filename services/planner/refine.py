@@ -44,6 +44,7 @@ from functools import lru_cache
 
 import clarabel
 import numpy as np
+import shapely
 from scipy import sparse
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
@@ -552,10 +553,13 @@ def refine(
     if settings.window_radii is not None:
         return refine_in_windows(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
                                  max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
+    stack = EllipseStack.of(ellipses)
+    kappa = settings.curvature_factor * max_curvature
+    if at_robot and heading_rad is not None:
+        legs = [_driven_onto(legs[0], heading_rad, stack=stack, max_curvature=kappa, settings=settings), *legs[1:]]
     total = sum(polyline_length(leg) for leg in legs)
     n = _bucket(int(np.ceil(total / settings.spacing_m)) + 1)
     z, goal_indices = resample_legs(legs, n=n)
-    stack = EllipseStack.of(ellipses)
     # The margin above level 1 gives the smoothed curve room; a robot that has just sensed an obstacle
     # close ahead cannot give that room within its first turning radius, so there the plan only has to
     # stay outside (the smoother still proves the continuous curve clear).
@@ -573,7 +577,6 @@ def refine(
     pinned[[0, *goal_indices]] = 1.0
     pinned_points = z.copy()
     heading = np.zeros(2) if heading_rad is None else np.array([np.cos(heading_rad), np.sin(heading_rad)])
-    kappa = settings.curvature_factor * max_curvature
 
     # The route itself is the first iterate: when it is already optimal (the exact tangent route often
     # is, up to the curvature bound) one solve confirms it.
@@ -628,6 +631,73 @@ def refine(
         iterations=iterations,
         curvature_slack=float(np.max(slack, initial=0.0)),
     )
+
+
+def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, max_curvature: float,
+                 settings: RefineSettings) -> FloatArray:
+    """The route's start as a car would drive onto it, where the route leaves the start further off the
+    heading than one iteration can turn a step (`_driven_path`); the route itself where it leaves along
+    the heading, or where that drive comes within the refined points' level of an ellipse or does not
+    come back onto the route.
+
+    The refinement turns a step's direction by at most acos(`step_shrink`) an iteration (its length
+    along its previous direction keeps that fraction of it): from a route that leaves the start at a
+    right angle to the heading its first solves only swing the start round, a few degrees each. Started
+    from a path that already leaves along the heading and turns within the curvature bound, it only
+    has to shorten it.
+    """
+    first = route[1] - route[0]
+    off = abs(math.remainder(math.atan2(first[1], first[0]) - heading_rad, 2.0 * math.pi))
+    if off <= math.acos(settings.step_shrink):
+        return route
+    driven = _driven_path(route, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
+    level = min(settings.start_level, settings.level)
+    if driven is None or (len(stack) and np.min(stack.min_levels(driven)) < level):
+        return route
+    return driven
+
+
+def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step_m: float) -> FloatArray | None:
+    """A car's path from the route's first point, leaving along the heading, onto the route: pure pursuit
+    of the point one turning radius further along the route than the car's projection, steering within
+    the turning radius (at full lock while that point lies behind), steps of `step_m` along exact arcs;
+    once it crosses the route, or is within a centimetre of it and a hundredth of a radian of its
+    direction, the route from there on (an overshoot could take it into an ellipse the route runs
+    along). None if it has not come back onto it within the route's length twice over."""
+    route = route[np.concatenate([[True], np.any(route[1:] != route[:-1], axis=1)])]  # no repeated points
+    if len(route) < 2:
+        return None
+    seg = np.diff(route, axis=0)
+    seg_len = np.linalg.norm(seg, axis=1)
+    starts, unit = route[:-1], seg / seg_len[:, None]
+    along = np.concatenate([[0.0], np.cumsum(seg_len)])
+    x, y, theta = float(route[0, 0]), float(route[0, 1]), heading_rad
+    points = [(x, y)]
+    side = 0.0
+    for _ in range(int(2.0 * along[-1] / step_m) + 1):
+        # The projection onto the route (the nearest point of its segments), and which side of it the car is.
+        t = np.clip(np.einsum("ij,ij->i", np.array([x, y]) - starts, unit), 0.0, seg_len)
+        gap = np.hypot(starts[:, 0] + t * unit[:, 0] - x, starts[:, 1] + t * unit[:, 1] - y)
+        k = int(np.argmin(gap))
+        here = unit[k, 0] * (y - starts[k, 1]) - unit[k, 1] * (x - starts[k, 0])
+        if len(points) > 1 and (here * side < 0.0 or gap[k] <= 0.01 and abs(
+                math.remainder(math.atan2(unit[k, 1], unit[k, 0]) - theta, 2.0 * math.pi)) <= 0.01):
+            return np.vstack([np.array(points), route[k + 1 :]])
+        side = here
+        s = min(float(along[k] + t[k]) + radius_m, float(along[-1]))
+        gx, gy = np.interp(s, along, route[:, 0]), np.interp(s, along, route[:, 1])
+        bearing = math.remainder(math.atan2(gy - y, gx - x) - theta, 2.0 * math.pi)
+        reach = math.hypot(gx - x, gy - y)
+        if math.cos(bearing) <= 0.0 or reach <= 1e-9:
+            curvature = math.copysign(1.0 / radius_m, bearing)
+        else:
+            curvature = max(-1.0 / radius_m, min(1.0 / radius_m, 2.0 * math.sin(bearing) / reach))
+        turn = curvature * step_m
+        chord = step_m if turn == 0.0 else 2.0 * math.sin(0.5 * turn) / curvature
+        x, y = x + chord * math.cos(theta + 0.5 * turn), y + chord * math.sin(theta + 0.5 * turn)
+        theta += turn
+        points.append((x, y))
+    return None
 
 
 _MET_SLACK = 1e-6  # a curvature slack at most this is a met bound (as `plan_path` takes it)
@@ -765,12 +835,11 @@ def _span(along: FloatArray, lo: float, hi: float) -> tuple[int, int]:
 def _held_by_its_ends(z: FloatArray, a: int, b: int, points: FloatArray, reach_m: float) -> bool:
     """Whether a window's refined path has not come back most of the way onto the route within half a
     reach of a pinned end (not the robot's start nor the route's end): some point there lies more than
-    `_PIN_TOLERANCE_M` and a quarter of the window's largest move off the route's, so the pin rather than
-    the turn shaped the path there."""
-    # The window's points are the route's a … b resampled evenly along it (`_span`): point k is near a + k s.
-    route = z[a + np.round(np.linspace(0.0, b - a, len(points))).astype(np.intp)]
-    off = np.linalg.norm(points - route, axis=1)
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
+    `_PIN_TOLERANCE_M` and a quarter of the window's largest move off the route's points a … b, so the pin
+    rather than the turn shaped the path there. (Distances to the route's polyline: a window that starts
+    at the robot may begin from a drive onto the route, `_driven_onto`, whose points are not the route's.)"""
+    off = shapely.distance(shapely.points(points), shapely.LineString(z[a : b + 1]))
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
     ends = np.zeros(len(points), dtype=bool)
     if a > 0:
         ends |= along <= 0.5 * reach_m

@@ -381,9 +381,10 @@ def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
 
 
 def test_a_solve_that_clears_the_curvature_slack_without_moving_the_path_ends_the_refinement():
-    """On the benchmark's 200-obstacle field the first solve cannot meet the curvature bound without
-    slack; the second clears it and moves the path by less than the tolerance. That is converged: a
-    refinement run on to a tolerance of 1e-6 ends no more than 0.1 % shorter."""
+    """On the benchmark's 200-obstacle field, refined from the route itself (not from the robot's pose,
+    which would first drive the car onto the route: `_driven_onto`), the first solve cannot meet the
+    curvature bound without slack; the second clears it and moves the path by less than the tolerance.
+    That is converged: a refinement run on to a tolerance of 1e-6 ends no more than 0.1 % shorter."""
     from cvxnav.bench.fitting import random_field
     from cvxnav.bench.problem import BenchProblem
     from services.planner.refine import refine
@@ -392,7 +393,7 @@ def test_a_solve_that_clears_the_curvature_slack_without_moving_the_path_ends_th
     box = dict(bounds_min=problem.bounds_min, bounds_max=problem.bounds_max)
     legs = tangent_route(start=problem.start, goals=problem.goals, ellipses=problem.grown, level=RefineSettings().level, **box)
     kwargs = dict(legs=legs, ellipses=problem.grown, max_curvature=problem.scenario.max_curvature,
-                  heading_rad=problem.scenario.start.theta, **box)
+                  heading_rad=problem.scenario.start.theta, at_robot=False, **box)
     assert refine(**kwargs, settings=RefineSettings(max_iterations=1)).curvature_slack > 1e-3
     refined = refine(**kwargs)
     assert refined.iterations == 2 and refined.curvature_slack <= 1e-9
@@ -455,6 +456,39 @@ def test_a_route_refined_in_windows_keeps_its_straight_stretches_and_meets_every
     middle = route[(route[:, 0] > 9.0) & (route[:, 0] < 12.5)]
     assert len(middle) > 30 and all(np.any(np.all(z == point, axis=1)) for point in middle)
     assert abs(polyline_length(z) - polyline_length(whole.points)) <= 2e-3 * polyline_length(whole.points)
+
+
+@pytest.mark.parametrize("heading_rad", [-np.pi / 2, np.pi / 2, -1.0])
+def test_a_car_facing_off_its_route_is_driven_onto_it_before_the_refinement(heading_rad):
+    """A car 0.8 m off a corridor's centre line, facing across the corridor (or 1 rad off the route): the
+    refinement starts from a drive onto the route that leaves along the heading and turns within the
+    turning radius, and one solve meets every bound, where refining from the route takes three to five
+    (each turns a step by at most acos(0.95) ≈ 18°). Its length is within 0.3 % of that refinement run to
+    a tolerance of 1e-6."""
+    from services.planner.refine import _driven_path, refine
+
+    walls = [Ellipse.from_axes(center=[15.0, 2.5], semi_axes=[25.0, 0.6]),
+             Ellipse.from_axes(center=[15.0, -2.5], semi_axes=[25.0, 0.6])]
+    box = dict(bounds_min=np.array([-5.0, -4.0]), bounds_max=np.array([35.0, 4.0]))
+    start, goal = np.array([0.0, 0.8]), np.array([20.0, 0.0])
+    legs = tangent_route(start=start, goals=goal[None], ellipses=walls, level=RefineSettings().level, **box)
+    radius, step = 1.0 / (RefineSettings().curvature_factor * 1.0), RefineSettings().spacing_m
+    drive = _driven_path(legs[0], heading_rad, radius_m=radius, step_m=step)
+    first = drive[1] - drive[0]
+    assert np.allclose(drive[0], start) and np.allclose(drive[-1], goal)
+    assert abs(np.arctan2(first[1], first[0]) - heading_rad) < 1e-9 + 0.5 * step / radius
+    direction = np.arctan2(np.diff(drive[:-1, 1]), np.diff(drive[:-1, 0]))
+    assert np.all(np.abs(np.angle(np.exp(1j * np.diff(direction)))) <= step / radius * (1.0 + 1e-9))
+
+    common = dict(legs=legs, ellipses=walls, max_curvature=1.0, heading_rad=heading_rad, **box)
+    from_route = refine(**common, at_robot=False)
+    driven = refine(**common, settings=RefineSettings(window_radii=2.0))
+    tight = refine(**common, settings=RefineSettings(rel_tolerance=1e-6, max_iterations=40))
+    assert from_route.iterations >= 3 and driven.iterations == 1
+    z = driven.points
+    assert driven.curvature_slack <= 1e-9 and len(intersected(z, walls)) == 0 and np.allclose(z[-1], goal)
+    assert abs(np.arctan2(z[1, 1] - z[0, 1], z[1, 0] - z[0, 0]) - heading_rad) < 1e-6
+    assert polyline_length(z) <= 1.003 * polyline_length(tight.points)
 
 
 def test_a_window_whose_path_the_pins_still_hold_is_widened():
