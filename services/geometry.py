@@ -277,13 +277,20 @@ class EllipseStack:
             starts = np.arange(0, len(centers), run)
             size = np.diff(np.append(starts, len(centers)))
             middle = 0.5 * (np.minimum.reduceat(centers, starts) + np.maximum.reduceat(centers, starts))
-            around = np.linalg.norm(centers - np.repeat(middle, size, axis=0), axis=1) + radii
-            lists = self._tree.query_ball_point(middle, r=np.maximum.reduceat(around, starts) + self.reach.max())
+            around = np.maximum.reduceat(np.linalg.norm(centers - np.repeat(middle, size, axis=0), axis=1) + radii, starts)
+            lists = self._tree.query_ball_point(middle, r=around + self.reach.max())
         else:
             lists = self._tree.query_ball_point(centers, r=radii + self.reach.max())
         counts = np.fromiter(map(len, lists), dtype=int, count=len(lists))
         cols = np.fromiter(chain.from_iterable(lists), dtype=int, count=int(counts.sum()))
-        if run > 1:  # every disc of a run against every ellipse found for the run, row by row
+        if run > 1:
+            # The tree was asked with the largest reach; an ellipse whose own bounding disc misses the disc
+            # round the run meets none of the run's discs.
+            owner = np.repeat(np.arange(len(lists)), counts)
+            found = np.linalg.norm(middle[owner] - self.centers[cols], axis=1) <= around[owner] + self.reach[cols]
+            cols = cols[found]
+            counts = np.bincount(owner[found], minlength=len(lists))
+            # Every disc of a run against every ellipse found for the run, row by row.
             pairs = size * counts
             group = np.repeat(np.arange(len(lists)), pairs)
             local = np.arange(len(group)) - np.repeat(np.cumsum(pairs) - pairs, pairs)

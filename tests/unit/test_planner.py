@@ -44,10 +44,13 @@ def test_segment_test_agrees_with_dense_sampling(p, q, center, axes, angle):
     assert sampled - exact < 1e-3  # the sampling can only miss by its resolution
 
 
-@pytest.mark.parametrize("run", [2, 16, 37])
-def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run):
+@pytest.mark.parametrize("run, count, semi", [
+    (2, 60, (0.1, 1.5)), (16, 60, (0.1, 1.5)), (37, 60, (0.1, 1.5)),
+    (16, 300, (0.05, 5.0)),  # a map's cover: long walls among specks, asked in classes of reach
+])
+def test_the_broad_phase_in_runs_finds_the_same_pairs_in_the_same_order(run, count, semi):
     rng = np.random.default_rng(run)
-    ellipses = _random_ellipses(rng, 60, extent=20.0, semi=(0.1, 1.5))
+    ellipses = _random_ellipses(rng, count, extent=20.0, semi=semi)
     stack = EllipseStack.of(ellipses)
     curve = 10.0 + np.cumsum(rng.normal(0.0, 0.05, (1000, 2)), axis=0)
     radii = rng.uniform(0.0, 0.3, len(curve))
