@@ -633,6 +633,9 @@ def refine(
     )
 
 
+_JOINED_M, _JOINED_RAD = 0.01, 0.01  # a drive this close to the route and its direction has joined it
+
+
 def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, max_curvature: float,
                  settings: RefineSettings) -> FloatArray:
     """The route's start as a car would drive onto it, where the route leaves the start further off the
@@ -646,11 +649,14 @@ def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, 
     from a path that already leaves along the heading and turns within the curvature bound, it only
     has to shorten it.
     """
-    first = route[1] - route[0]
+    distinct = route[np.concatenate([[True], np.any(route[1:] != route[:-1], axis=1)])]
+    if len(distinct) < 2:
+        return route
+    first = distinct[1] - distinct[0]
     off = abs(math.remainder(math.atan2(first[1], first[0]) - heading_rad, 2.0 * math.pi))
     if off <= math.acos(settings.step_shrink):
         return route
-    driven = _driven_path(route, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
+    driven = _driven_path(distinct, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
     level = min(settings.start_level, settings.level)
     if driven is None or (len(stack) and np.min(stack.min_levels(driven)) < level):
         return route
@@ -658,15 +664,13 @@ def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, 
 
 
 def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step_m: float) -> FloatArray | None:
-    """A car's path from the route's first point, leaving along the heading, onto the route: pure pursuit
-    of the point one turning radius further along the route than the car's projection, steering within
-    the turning radius (at full lock while that point lies behind), steps of `step_m` along exact arcs;
-    once it crosses the route, or is within a centimetre of it and a hundredth of a radian of its
-    direction, the route from there on (an overshoot could take it into an ellipse the route runs
-    along). None if it has not come back onto it within the route's length twice over."""
-    route = route[np.concatenate([[True], np.any(route[1:] != route[:-1], axis=1)])]  # no repeated points
-    if len(route) < 2:
-        return None
+    """A car's path from the route's first point, leaving along the heading, onto the route (a polyline
+    of distinct consecutive points): pure pursuit of the point one turning radius further along the route
+    than the car's projection, steering within the turning radius (at full lock while that point lies
+    behind), steps of `step_m` along exact arcs; once it crosses the route, or is within `_JOINED_M` of
+    it and `_JOINED_RAD` of its direction, the route from there on (an overshoot could take it into an
+    ellipse the route runs along). None if it has not come back onto it within the route's length twice
+    over."""
     seg = np.diff(route, axis=0)
     seg_len = np.linalg.norm(seg, axis=1)
     starts, unit = route[:-1], seg / seg_len[:, None]
@@ -680,8 +684,8 @@ def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step
         gap = np.hypot(starts[:, 0] + t * unit[:, 0] - x, starts[:, 1] + t * unit[:, 1] - y)
         k = int(np.argmin(gap))
         here = unit[k, 0] * (y - starts[k, 1]) - unit[k, 1] * (x - starts[k, 0])
-        if len(points) > 1 and (here * side < 0.0 or gap[k] <= 0.01 and abs(
-                math.remainder(math.atan2(unit[k, 1], unit[k, 0]) - theta, 2.0 * math.pi)) <= 0.01):
+        if len(points) > 1 and (here * side < 0.0 or gap[k] <= _JOINED_M and abs(
+                math.remainder(math.atan2(unit[k, 1], unit[k, 0]) - theta, 2.0 * math.pi)) <= _JOINED_RAD):
             return np.vstack([np.array(points), route[k + 1 :]])
         side = here
         s = min(float(along[k] + t[k]) + radius_m, float(along[-1]))
