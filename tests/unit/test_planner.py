@@ -494,6 +494,37 @@ def test_a_car_facing_off_its_route_is_driven_onto_it_before_the_refinement(head
     assert polyline_length(z) <= 1.003 * polyline_length(tight.points)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-np.pi, np.pi), st.lists(st.tuples(st.floats(0.3, 3.0), st.floats(-1.2, 1.2)), min_size=1, max_size=6),
+       st.floats(0.5, 3.0))
+def test_a_drive_onto_any_route_leaves_along_the_heading_within_the_turning_radius_and_ends_on_it(
+        heading_rad, turns, radius_m):
+    """Any route (a polyline of legs 0.3–3 m, each turned up to 1.2 rad from the last), any heading, any
+    turning radius: a drive that comes back onto the route leaves along the heading, steps a step of
+    arc at a time turning by at most step / radius, and then is the route's own points to its end."""
+    from services.planner.refine import _driven_path
+
+    direction = np.cumsum([angle for _, angle in turns])
+    legs = np.array([length for length, _ in turns])[:, None] * np.column_stack([np.cos(direction), np.sin(direction)])
+    route = np.vstack([[0.0, 0.0], np.cumsum(legs, axis=0)])
+    step = 0.09
+    drive = _driven_path(route, heading_rad, radius_m=radius_m, step_m=step)
+    if drive is None:
+        return
+    first = drive[1] - drive[0]
+    assert np.allclose(drive[0], route[0])
+    assert abs(np.angle(np.exp(1j * (np.arctan2(first[1], first[0]) - heading_rad)))) <= 0.5 * step / radius_m + 1e-9
+    # It ends with the route's own last points (at least its end), after the car's.
+    shared = next(m for m in range(min(len(drive), len(route)), 0, -1) if np.array_equal(drive[-m:], route[-m:]))
+    car = drive[: len(drive) - shared]
+    assert len(car) >= 1 and np.array_equal(drive[-1], route[-1])
+    # The car's points lie a step of arc apart, each turning by at most step / radius from the last.
+    chords = np.linalg.norm(np.diff(car, axis=0), axis=1)
+    assert np.all(chords <= step * (1.0 + 1e-9)) and np.all(chords >= 2.0 * radius_m * np.sin(0.5 * step / radius_m) - 1e-9)
+    heading = np.arctan2(np.diff(car[:, 1]), np.diff(car[:, 0]))
+    assert np.all(np.abs(np.angle(np.exp(1j * np.diff(heading)))) <= step / radius_m * (1.0 + 1e-9))
+
+
 def test_a_window_whose_path_the_pins_still_hold_is_widened():
     """A hairpin round the tip of a long wall: a window two turning radii round the turn still moves the
     path 8 cm off the route where it is pinned, so it is widened, until the path comes back onto the route
