@@ -29,6 +29,10 @@ goal inside a newly grown cover, would otherwise make it infeasible — and an u
 shows up as slack rather than as a solver failure. The exact checks downstream (the refined path
 outside every ellipse, the smoother's proof on the continuous curve) decide what is published.
 
+The first iterate is the route, except where it leaves the robot further off its heading than one
+iteration can turn a step (the step floor lets a step turn by at most acos 0.95 ≈ 18°): there it is a
+car's drive onto the route, which leaves along the heading and turns within the bound (`_driven_onto`).
+
 A long route that is mostly straight (a corridor on a building's map) can be refined in windows: only
 round the points where it breaks the curvature bound and round its start, the rest kept as the route has
 it (`refine_in_windows`), so that the solves cost what the turns hold rather than what the route's
@@ -578,8 +582,8 @@ def refine(
     pinned_points = z.copy()
     heading = np.zeros(2) if heading_rad is None else np.array([np.cos(heading_rad), np.sin(heading_rad)])
 
-    # The route itself is the first iterate: when it is already optimal (the exact tangent route often
-    # is, up to the curvature bound) one solve confirms it.
+    # The route itself is the first iterate (or, from a robot facing off it, the drive onto it): when it is
+    # already optimal (the exact tangent route often is, up to the curvature bound) one solve confirms it.
     previous = previous_path = float(np.sum(np.diff(z, axis=0) ** 2))
     previous_penalty = 0.0
     iterations = 0
