@@ -333,7 +333,6 @@ def plan_in_corridor(
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
         coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m)
-    with timer("corridor"):
         coarse = coarse_grid.route(waypoints, slack=settings.slack)
     if coarse.status != "ok":
         plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
@@ -341,7 +340,6 @@ def plan_in_corridor(
     with timer("fit"):
         line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
         tiles = cover.tiles_near(line, settings.band_m)
-    with timer("fit"):
         fitted = _pieces(cover, tiles, waypoints)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
         keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
