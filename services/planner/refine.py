@@ -637,6 +637,12 @@ def refine(
     )
 
 
+def _off_heading(step: FloatArray, heading_rad: float) -> float:
+    """The angle (0 … π) between a step and the heading."""
+    along = (step[0] * math.cos(heading_rad) + step[1] * math.sin(heading_rad)) / math.hypot(step[0], step[1])
+    return math.acos(min(1.0, max(-1.0, along)))
+
+
 _JOINED_M, _JOINED_RAD = 0.01, 0.01  # a drive this close to the route and its direction has joined it
 
 
@@ -656,9 +662,7 @@ def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, 
     distinct = route[np.concatenate([[True], np.any(route[1:] != route[:-1], axis=1)])]
     if len(distinct) < 2:
         return route
-    first = distinct[1] - distinct[0]
-    off = abs(math.remainder(math.atan2(first[1], first[0]) - heading_rad, 2.0 * math.pi))
-    if off <= math.acos(settings.step_shrink):
+    if _off_heading(distinct[1] - distinct[0], heading_rad) <= math.acos(settings.step_shrink):
         return route
     driven = _driven_path(distinct, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
     level = min(settings.start_level, settings.level)
@@ -755,8 +759,7 @@ def refine_in_windows(
     sharp = 1 + np.flatnonzero(_curvature_broken(z, settings.curvature_met_factor * max_curvature))
     intervals = [(along[k] - reach, along[k] + reach) for k in sharp.tolist()]
     if heading_rad is not None:
-        first = (z[1] - z[0]) / length[0]
-        off = math.acos(min(1.0, max(-1.0, first[0] * math.cos(heading_rad) + first[1] * math.sin(heading_rad))))
+        off = _off_heading(z[1] - z[0], heading_rad)
         if math.cos(off) < _ALONG_COS:
             # Swinging onto the route takes about a turning radius per radian, and as much again to come
             # back onto its line: the start's window is that much longer.
