@@ -218,6 +218,15 @@ def test_route_passes_a_u_trap_instead_of_entering_it():
     assert np.abs(route[:, 1]).max() > 2.0  # it goes round the U, not into it
 
 
+def test_a_route_search_among_no_ellipses_kept_off_the_straight_line_finds_none():
+    """With no ellipse the only candidate is the straight segment; a corridor that rejects it leaves no
+    route (the graph has terminals and no tangent point)."""
+    def nowhere(p, q):
+        return np.zeros(len(p), dtype=bool)
+
+    assert tangent_route(start=np.zeros(2), goals=np.array([[5.0, 0.0]]), ellipses=[], keep_to=nowhere, **BOX) is None
+
+
 def test_enclosed_goal_is_no_path():
     ring = [Ellipse.circle(center=[5 + 2 * np.cos(a), 2 * np.sin(a)], radius=0.8) for a in np.linspace(0, 2 * np.pi, 10)]
     plan = plan_path(

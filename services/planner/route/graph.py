@@ -132,7 +132,9 @@ class _TangentGraph:
         on_p, on_q = seg.owner_p >= 0, seg.owner_q >= 0
         arc_p[on_p], unw_p[on_p] = arcs.locate(seg.owner_p[on_p], seg.theta_p[on_p])
         arc_q[on_q], unw_q[on_q] = arcs.locate(seg.owner_q[on_q], seg.theta_q[on_q])
-        valid = (~on_p | arcs.free[np.maximum(arc_p, 0)]) & (~on_q | arcs.free[np.maximum(arc_q, 0)])
+        valid = np.ones(len(seg.p), dtype=bool)
+        valid[on_p] &= arcs.free[arc_p[on_p]]
+        valid[on_q] &= arcs.free[arc_q[on_q]]
         self.status[pick[~valid]] = 2
 
         # Exact segment test against every ellipse but the two it touches, once per segment.
