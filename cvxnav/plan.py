@@ -21,7 +21,9 @@ from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
-from services.planner.core import PathPlan, goals_ahead, plan_until_verified, stay_at_start, why_no_path
+from services.planner.core import (
+    MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
+)
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
@@ -44,13 +46,28 @@ class PlanSettings:
 
 @dataclass
 class _Clock:
+    """Milliseconds by stage. A stage timed within another (the cover fitted while a plan is checked) is
+    charged to the inner one alone, so the stages add up to the time spent in them."""
+
     ms: dict[str, float] = field(default_factory=dict)
+    _open: list[str] = field(default_factory=list)  # the stages being timed, innermost last
+    _since: float = 0.0  # when the innermost was last charged
+
+    def _charge(self) -> None:
+        now = time.perf_counter()
+        if self._open:
+            self.ms[self._open[-1]] = self.ms.get(self._open[-1], 0.0) + 1e3 * (now - self._since)
+        self._since = now
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        yield
-        self.ms[name] = self.ms.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
+        self._charge()
+        self._open.append(name)
+        try:
+            yield
+        finally:
+            self._charge()
+            self._open.pop()
 
 
 def fit_known_obstacles(
@@ -72,13 +89,15 @@ def fit_known_obstacles(
 def plan_on_model(
     scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
     route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
+    meets_others: MeetsOthers = meets_none,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
     on the model every planner is handed. Goals reached at the start, or with the goal before them
     (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
     `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
-    route may go (`services.planner.core.plan_path`)."""
+    route may go (`services.planner.core.plan_path`); `meets_others`: whether a plan meets an obstacle
+    it was not made among (`services.planner.core.plan_within`)."""
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if not len(goals):
         return stay_at_start(scenario.start.xy, grown)
@@ -92,6 +111,7 @@ def plan_on_model(
         max_curvature=scenario.max_curvature,
         route_estimate_m=route_estimate_m,
         route_keep_to=route_keep_to,
+        meets_others=meets_others,
     )
     return plan_until_verified(
         **problem,
@@ -140,8 +160,9 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -
             cover=cover,
             waypoints=np.vstack([scenario.start.xy, goals]),
             fixed=grown,
-            plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
-                scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to),
+            plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
+                scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to,
+                meets_others=meets_others),
             settings=settings.corridor,
             timer=clock.stage,
         )

@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from services.geometry import Ellipse, EllipseStack, FloatArray
 from schemas.occupancy import OccupancyGrid
 from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray
-from services.planner.core import PathPlan
+from services.planner.core import MeetsOthers, PathPlan
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed
 
@@ -315,7 +315,7 @@ def plan_in_corridor(
     cover: GridCover,
     waypoints: FloatArray,
     fixed: list[Ellipse],
-    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None], tuple[PathPlan, Smoothed | None]],
+    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers], tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
 ) -> CorridorPlan:
@@ -325,10 +325,11 @@ def plan_in_corridor(
     The plan is made among the fixed ellipses and the fitted ones that come within `near_m` of the
     corridor; then the paths are checked against every other fitted ellipse (the exact segment test on
     the refined points, and on the smoothed curve's samples at `_CURVE_LEVEL`) and against the tiles
-    not fitted, and planned again with whatever they touch. `plan_fn(grown, leg_lengths_m, keep_to)`
-    plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length on the coarse
-    grid (where the route search starts its bounds) and where the route may go (the corridor, or None);
-    `timer(stage)` wraps the "corridor" and "fit" steps.
+    not fitted, and planned again with whatever they touch. `plan_fn(grown, leg_lengths_m, keep_to,
+    meets_others)` plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length
+    on the coarse grid (where the route search starts its bounds), where the route may go (the corridor,
+    or None) and how to tell a plan that meets a piece it was not made among (which it hands back at
+    once: `services.planner.core.plan_within`); `timer(stage)` wraps the "corridor" and "fit" steps.
     """
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
@@ -344,25 +345,46 @@ def plan_in_corridor(
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
         keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
                    if settings.keep_to_corridor else None)
+    held: dict[int, tuple[FloatArray, list[GridPiece]]] = {}  # polylines held against the rest of the cover
+
+    def met_by(points: FloatArray, level: float) -> list[GridPiece]:
+        """The fitted pieces not planned among that the polyline comes within `level` of, the tiles it
+        comes near fitted first. Once per polyline: the pieces of tiles fitted later are beyond its reach."""
+        nonlocal fitted
+        if (known := held.get(id(points))) is not None and known[0] is points:
+            return known[1]
+        with timer("fit"):
+            new = cover.tiles_near(_densify(points, 0.1), cover.reach_m + 0.1) - tiles
+            if new:
+                tiles.update(new)
+                fitted = _pieces(cover, tiles, waypoints)
+            planned = {id(piece) for piece in used}
+            others = [piece for piece in fitted if id(piece) not in planned]
+            hit = [others[k] for k in _entered(_grown_stack(others), points, level=level).tolist()]
+        held[id(points)] = (points, hit)
+        return hit
+
+    def meets(plan: PathPlan, smoothed: Smoothed | None) -> list[GridPiece]:
+        """The fitted pieces not planned among that the plan's points (at level 1) or its smoothed curve's
+        samples (at `_CURVE_LEVEL`) come within."""
+        hit = met_by(plan.points, 1.0)
+        if smoothed is None:
+            return hit
+        return hit + [piece for piece in met_by(smoothed.points, _CURVE_LEVEL) if piece not in hit]
+
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     corridor, tightened = keep_to, False
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
-        plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to)
+        # A plan that meets a piece it was not made among is handed back at once (no other route or margin
+        # is tried on too few ellipses), and planned again with it.
+        plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to, lambda p, s: bool(meets(p, s)))
         if plan.status == "ok":
             # Held against the rest of the cover whether its curve verified or not: a plan that failed
             # among too few ellipses (a route through a wall mass no tile of which was fitted, with a turn
             # there the car cannot make) says nothing of the map until the ellipses it met are in.
-            with timer("fit"):
-                new = cover.tiles_near(_touched(plan, smoothed), cover.reach_m + 0.1) - tiles
-                if new:
-                    tiles |= new
-                    fitted = _pieces(cover, tiles, waypoints)
-                planned = {id(piece) for piece in used}
-                others = [piece for piece in fitted if id(piece) not in planned]
-                hit = _met(_grown_stack(others), plan, smoothed)
-            if len(hit):
-                used += [others[k] for k in hit.tolist()]
+            if hit := meets(plan, smoothed):
+                used += hit
                 continue
             if smoothed is not None and smoothed.verification.ok:
                 break
@@ -380,6 +402,10 @@ def plan_in_corridor(
                         continue
             break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
+    else:
+        if plan.status == "ok" and meets(plan, smoothed):  # never a path through walls it was not planned among
+            plan, smoothed = PathPlan("no_path", np.zeros((0, 2)), reason=(
+                f"every one of {settings.max_rounds} plans met walls of the map it was not made among")), None
     return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, rounds, keep_to is not None)
 
 
@@ -516,20 +542,6 @@ def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray
         return np.zeros(0, dtype=np.intp)
     _, cols, levels = stack.segment_pairs(path[:-1], path[1:])
     return np.unique(cols[levels < level])
-
-
-def _met(stack: EllipseStack, plan: PathPlan, smoothed: Smoothed | None) -> IntArray:
-    """Indices of the ellipses the plan's refined points (at level 1) or its smoothed curve's samples (at
-    `_CURVE_LEVEL`) come within."""
-    hit = _entered(stack, plan.points, level=1.0)
-    return hit if smoothed is None else np.union1d(hit, _entered(stack, smoothed.points, level=_CURVE_LEVEL))
-
-
-def _touched(plan: PathPlan, smoothed: Smoothed | None) -> FloatArray:
-    """The plan's refined points and its smoothed curve's, as one polyline sampled at most 0.1 m apart
-    (the jump from one to the other is a segment of it too, which only makes the check stricter)."""
-    parts = [plan.points] + ([smoothed.points] if smoothed is not None else [])
-    return _densify(np.vstack([p for p in parts if len(p)]), 0.1)
 
 
 def _densify(points: FloatArray, step_m: float) -> FloatArray:

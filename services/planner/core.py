@@ -206,6 +206,15 @@ def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bo
                 and not len(intersected(lead, ellipses, level=level)))
 
 
+# Whether a plan (and its smoothed curve, once there is one) meets an obstacle it was not made among.
+MeetsOthers = Callable[[PathPlan, Smoothed | None], bool]
+
+
+def meets_none(plan: PathPlan, smoothed: Smoothed | None) -> bool:
+    """`MeetsOthers` where the plan is made among every obstacle there is."""
+    return False
+
+
 def plan_path(
     *,
     start: FloatArray,
@@ -219,6 +228,7 @@ def plan_path(
     route_estimate_m: Sequence[float] | None = None,
     route_keep_to: KeepTo | None = None,
     late: Callable[[], bool] = lambda: False,
+    meets_others: MeetsOthers = meets_none,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
 
@@ -231,7 +241,12 @@ def plan_path(
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
     tight to turn in — and refined once more against the true ellipses; last, after a turning lead-in
     onto the direction the first route leaves in, either way round (`_turns`). Once `late()` (the
-    replan was called off), no further route is tried after one that refined clear.
+    replan was called off), no further route is tried after one that refined clear. A plan that
+    `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
+    caller to plan again among more obstacles, never to publish: any route refined clear, and the
+    shortest route within a corridor (`route_keep_to`) unrefined. (Without a corridor the shortest route
+    may roam the whole map, through one wall mass after another that no plan was made among: it is
+    refined first, and its refinement may fail among the walls it was given.)
     """
     start = np.asarray(start, dtype=float)
     goals = np.asarray(goals, dtype=float).reshape(-1, 2)
@@ -285,6 +300,11 @@ def plan_path(
             if attempt == 0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
+        if attempt == 0 and route_keep_to is not None:
+            route = PathPlan("ok", np.vstack([legs[0], *(leg[1:] for leg in legs[1:])]),
+                             tuple(accumulate(len(leg) - 1 for leg in legs)))
+            if meets_others(route, None):
+                return route
         if attempt == 0 and heading_rad is not None:
             tries += [(turn, 0.0) for turn in _turns(start, heading_rad, legs[0], radius=_TURN_WIDER * radius,
                                                         step_m=settings.spacing_m)
@@ -306,9 +326,12 @@ def plan_path(
         if len(intersected(refined.points, ellipses)):
             entered_m = max(entered_m or 0.0, _entered_m(refined.points, stack))
             continue
+        candidate = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
+        if meets_others(candidate, None):
+            return candidate
         if refined.curvature_slack < best_slack:
             best_slack = refined.curvature_slack
-            best = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
+            best = candidate
         if refined.curvature_slack <= 1e-6 or late():
             break
     if best is None:
@@ -362,6 +385,7 @@ def plan_within(
     ladder: list[RefineSettings],
     timer: Callable[[str], AbstractContextManager] = nullcontext,
     late: Callable[[], bool] = lambda: False,
+    meets_others: MeetsOthers = meets_none,
     **problem,
 ) -> Attempted:
     """`plan_until_verified` on the `ladder` of settings, cut short once `late()` (a replan called off).
@@ -369,6 +393,11 @@ def plan_within(
     `late` is checked between attempts (a solve is not interrupted): once it is true, the ladder stops
     before its next attempt. Within an attempt, `plan_path` stops trying routes once one refined clear.
     Whatever is returned unverified is never published.
+
+    `meets_others(plan, smoothed)`: whether a plan made among the given ellipses (or its curve, once
+    smoothed) meets an obstacle it was not made among, which the caller will add and plan again with
+    (`services.maps.corridor`). Such a plan is returned as soon as it is found, unverified: every route
+    and margin still to try would be tried on too few obstacles.
     """
     fallback: Attempted | None = None
     too_sharp: list[RefineSettings] = []  # attempts whose curve broke the curvature bound
@@ -379,13 +408,15 @@ def plan_within(
         if fallback is not None and late():
             return fallback
         with timer("optimize"):
-            plan = plan_path(**problem, settings=attempt, late=late)
+            plan = plan_path(**problem, settings=attempt, late=late, meets_others=meets_others)
         if plan.status != "ok":
             fallback = fallback or Attempted(plan, None)
             continue
+        if meets_others(plan, None):
+            return Attempted(plan, None)
         with timer("smooth"):
             smoothed = smooth_fn(plan.points)
-        if smoothed.verification.ok:
+        if smoothed.verification.ok or meets_others(plan, smoothed):
             return Attempted(plan, smoothed)
         if smoothed.verification.max_curvature > problem["max_curvature"]:
             too_sharp.append(attempt)

@@ -55,8 +55,9 @@ def _corridor_plan(scenario: Scenario, **settings):
     grid = scenario.obstacles[0].grid
     cover = GridCover(grid, margin_m=MARGIN)
     found = plan_in_corridor(cover=cover, waypoints=np.vstack([scenario.start.xy, scenario.goals_array]), fixed=[],
-                             plan_fn=lambda ellipses, lengths, keep_to: plan_on_model(
-                                 scenario, ellipses, route_estimate_m=lengths, route_keep_to=keep_to),
+                             plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
+                                 scenario, ellipses, route_estimate_m=lengths, route_keep_to=keep_to,
+                                 meets_others=meets_others),
                              settings=CorridorSettings(**settings))
     return found, cover
 
@@ -85,6 +86,17 @@ def test_a_door_wider_than_the_passage_is_open_and_the_plan_goes_through_it(spar
     stack = EllipseStack.of([p.grown for p in cover.pieces([(x, y) for x in range(nx) for y in range(ny)])])
     assert np.min(stack.segment_levels(path[:-1], path[1:])) >= 1.0
     assert scenario.clearance(path).min() >= MARGIN - 0.02
+
+
+def test_a_plan_that_meets_walls_in_the_last_round_is_no_path_not_a_path_through_them():
+    """Planned among no piece of the cover (`near_m` below zero) with one round to go, the first plan is
+    the straight line through the dividing wall. Held against the cover it meets the wall's pieces, and
+    with no round left to plan among them it is no_path, with that reason."""
+    scenario = _scenario(_room(1.2), goal=(11.0, 1.0))
+    found, _ = _corridor_plan(scenario, near_m=-100.0, max_rounds=1, keep_to_corridor=False)
+    assert found.plan.status == "no_path" and found.smoothed is None
+    assert "met walls of the map it was not made among" in found.plan.reason
+    assert _corridor_plan(scenario)[0].plan.status == "ok"
 
 
 def test_the_coarse_grid_keeps_every_cell_a_path_can_use():
@@ -149,6 +161,17 @@ def test_plan_scenario_on_a_map_reports_the_stages_and_the_reason(tmp_path: Path
     assert plan.timings_ms.load == 3.0 and plan.timings_ms.corridor > 0.0
     assert plan.timings_ms.total >= 3.0 + plan.timings_ms.corridor
     json.loads(plan.model_dump_json())
+
+
+def test_the_stages_timed_add_up_to_no_more_than_the_total():
+    """Tiles are fitted while a plan is held against the cover, within the optimisation: that time is
+    charged to the fit alone, so that the stages add up to at most the whole planning time."""
+    plan = plan_scenario(_scenario(_room(1.2)), settings=PlanSettings(), load_ms=3.0)
+    assert plan.status == "ok"
+    t = plan.timings_ms
+    stages = (t.load, t.corridor, t.cluster, t.fit, t.group, t.optimize, t.smooth)
+    assert min(stages) >= 0.0 and t.fit > 0.0 and t.optimize > 0.0
+    assert sum(stages) <= t.total + 1e-6
 
 
 def test_the_route_search_keeps_to_the_corridor_it_is_given():

@@ -392,6 +392,41 @@ def test_after_a_curve_breaks_the_curvature_bound_no_stricter_margin_is_tried():
     assert len(attempts) == 2  # the base margin and (1.0, 0.97); (1.05, 0.8) is stricter than the base
 
 
+def test_a_route_that_meets_an_obstacle_it_was_not_planned_among_is_handed_back_unrefined():
+    """Within a corridor, a shortest route that meets an obstacle the plan was not made among (a wall
+    beyond the ellipses given, as `services.maps.corridor` finds) comes back as the route itself, not
+    smoothed: the caller plans again among more, and spends no refinement, repair or smoothing on too
+    few. A route that meets none is refined and smoothed."""
+    from services.planner.core import margin_ladder, plan_within
+    from services.smoother.core import smooth
+
+    start, goals = np.array([0.0, 0.0]), np.array([[10.0, 0.0]])
+    disc = Ellipse.circle(center=[5.0, -0.2], radius=1.0)  # the route passes over it, at y ≈ 0.8
+    wall = Ellipse.circle(center=[5.0, 1.0], radius=0.3)  # not among the ellipses planned among
+    smoothed = []
+
+    def smooth_fn(points):
+        smoothed.append(points)
+        return smooth(points, ellipses=[disc], max_curvature=0.5, heading_rad=0.0, goals=goals, goal_tolerance_m=0.1,
+                      **BOX)
+
+    def everywhere(p, q):
+        return np.ones(len(p), dtype=bool)
+
+    problem = dict(start=start, heading_rad=0.0, goals=goals, ellipses=[disc], max_curvature=0.5,
+                   route_keep_to=everywhere, smooth_fn=smooth_fn, ladder=margin_ladder(RefineSettings(), ((1.05, 0.8),)),
+                   **BOX)
+    route = tangent_route(start=start, goals=goals, ellipses=[disc], level=RefineSettings().level, keep_to=everywhere,
+                          **BOX)[0]
+    assert len(intersected(route, [wall]))
+    met = plan_within(**problem, meets_others=lambda plan, curve: bool(len(intersected(plan.points, [wall]))))
+    assert met.plan.status == "ok" and met.smoothed is None and not smoothed
+    assert np.array_equal(met.plan.points, route)
+    clear = plan_within(**problem)
+    assert clear.smoothed is not None and clear.smoothed.verification.ok
+    assert len(clear.plan.points) > len(route)  # refined
+
+
 def test_a_solve_that_clears_the_curvature_slack_without_moving_the_path_ends_the_refinement():
     """On the benchmark's 200-obstacle field, refined from the route itself (not from the robot's pose,
     which would first drive the car onto the route: `_driven_onto`), the first solve cannot meet the
