@@ -177,10 +177,13 @@ class GridCover:
             self._fit_blocks(_blocks(missing))
         return [piece for t in wanted for piece in self.fitted[t]]
 
-    def tighten(self, points: FloatArray, *, tolerances_m: tuple[float, ...] = _TIGHTER_M) -> bool:
+    def tighten(self, points: FloatArray, *, tolerances_m: tuple[float, ...] = _TIGHTER_M, near: bool = False) -> bool:
         """Refit the fitted pieces whose grown ellipse holds one of the world points, at each of the smaller
         tolerances in turn, until none does; whether any piece was refitted. A piece already fitted to a
         tolerance is not refitted to it again (a point within the margin stays held by the tightest).
+        `near`: also the pieces a point may come within the piece's own tolerance of (its level ℓ with
+        (ℓ − 1) × the minor semi-axis, a lower bound on the distance, at most that): the points of a path
+        whose curve failed along them, which the pieces' excess over the grown walls may have pushed.
 
         A start or goal in free space may lie within the tolerance of the grown blocked region (a goal
         set 2 cm beyond the margin from a wall): the cover, up to `tolerance_m` more conservative than
@@ -196,7 +199,12 @@ class GridCover:
                 break
             Ab = np.array([piece.grown_Ab for _, piece in pieces])  # (k, 2, 3)
             u = np.einsum("kij,pj->kpi", Ab[:, :, :2], points) + Ab[:, None, :, 2]
-            holding = [pieces[k] for k in np.flatnonzero(np.any(np.einsum("kpi,kpi->kp", u, u) <= 1.0, axis=1))]
+            level = np.sqrt(np.min(np.einsum("kpi,kpi->kp", u, u), axis=1))
+            reach = np.zeros(len(pieces))
+            if near:  # the minor semi-axis is 1 / the largest singular value of A
+                minor = 1.0 / np.linalg.svd(Ab[:, :, :2], compute_uv=False)[:, 0]
+                reach = np.array([piece.tolerance_m for _, piece in pieces]) / minor
+            holding = [pieces[k] for k in np.flatnonzero(level <= 1.0 + reach)]
             if not holding:
                 break
             for tile, piece in holding:

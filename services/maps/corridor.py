@@ -391,11 +391,15 @@ def plan_in_corridor(
         if keep_to is None:
             # No route among the ellipses, or none refined clear: the cover, up to its tolerance more
             # conservative than the grown walls, may close a gap the coarse route passes through clear of
-            # them. Its pieces there are fitted again tighter, once, and the plan made again.
-            if plan.status == "no_path" and not tightened:
+            # them. Its pieces there are fitted again tighter, once, and the plan made again. A curve that
+            # failed may have been pushed by that excess where the path runs along walls (a start facing
+            # along a wall bulging into its way, a turn round specks): the pieces the path comes within
+            # their own tolerance of are fitted again tighter instead.
+            if not tightened and not (smoothed is not None and smoothed.verification.ok):
                 tightened = True
                 with timer("fit"):
-                    if cover.tighten(_clear_along(cover, coarse)):
+                    if (cover.tighten(_clear_along(cover, coarse)) if plan.status == "no_path"
+                            else cover.tighten(plan.points, near=True)):
                         fitted = cover.pieces(tiles)
                         used = _renewed(used, fitted, line, settings.near_m)
                         keep_to = corridor
