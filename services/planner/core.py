@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
-from services.planner.refine import RefineSettings, SolverFailure, leg_counts, refine
+from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
 
@@ -26,6 +26,7 @@ _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel n
 # A turning lead-in (`_turns`) is planned this much wider than the turning radius: an arc at the radius
 # itself would break the refinement's curvature budget, which its step floors make stricter.
 _TURN_WIDER = 1.15
+_APPROACHES = 8  # directions the last goal is approached from, when its approach breaks the curvature bound
 _MIN_TURN_RAD = math.pi / 8  # turns smaller than this (either way round) get no turning lead-in
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 
@@ -206,6 +207,22 @@ def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bo
                 and not len(intersected(lead, ellipses, level=level)))
 
 
+def _broken_near_end(points: FloatArray, kappa: float, within_m: float) -> bool:
+    """Whether the polyline breaks the curvature bound `kappa` somewhere, and only within `within_m` of its end."""
+    broken = 1 + np.flatnonzero(curvature_broken(points, kappa))
+    return bool(len(broken)) and polyline_length(points[broken[0]:]) <= within_m
+
+
+def _approaches(goal: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bounds_max: FloatArray, *,
+                length_m: float, level: float) -> list[FloatArray]:
+    """Points `length_m` from the goal in `_APPROACHES` directions whose straight segment to it stays
+    within the bounds and outside every ellipse: where a route may come in to the goal from."""
+    angles = 2.0 * np.pi * np.arange(_APPROACHES) / _APPROACHES
+    points = goal - length_m * np.column_stack([np.cos(angles), np.sin(angles)])
+    return [point for point in points
+            if _clear(np.vstack([point, goal]), ellipses, bounds_min, bounds_max, level=level)]
+
+
 # Whether a plan (and its smoothed curve, once there is one) meets an obstacle it was not made among.
 MeetsOthers = Callable[[PathPlan, Smoothed | None], bool]
 
@@ -240,7 +257,11 @@ def plan_path(
     cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
     tight to turn in — and refined once more against the true ellipses; last, after a turning lead-in
-    onto the direction the first route leaves in, either way round (`_turns`). Once `late()` (the
+    onto the direction the first route leaves in, either way round (`_turns`). Where every route refined
+    clear breaks the bound only near the last goal (tucked beside a wall the route rounds tightly), the
+    goal is approached in a straight line from a turning radius away, from each direction that leaves
+    clear, the shortest such route first: the refinement is local, and may need to come in from
+    elsewhere than the route did (swinging wide of the corner and back). Once `late()` (the
     replan was called off), no further route is tried after one that refined clear. A plan that
     `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
     caller to plan again among more obstacles, never to publish: any route refined clear, and the
@@ -280,22 +301,37 @@ def plan_path(
         if _clear(lead, ellipses, bounds_min, bounds_max, level=settings.level):
             tries += [(lead, 0.0), (lead, 0.5 * radius)]
     tries.append((None, radius))
+
+    def search(to: FloatArray, *, lead: FloatArray | None = None, extra_m: float = 0.0) -> list[FloatArray] | None:
+        return _route(start=start, lead=lead, goals=to, ellipses=ellipses, bounds_min=bounds_min,
+                      bounds_max=bounds_max, level=settings.level, extra_m=extra_m, estimate_m=route_estimate_m,
+                      keep_to=route_keep_to)
+
     best: PathPlan | None = None
     best_slack = np.inf
     entered_m = None
+
+    def refined_clear(legs: list[FloatArray]) -> PathPlan | None:
+        """The route refined, kept as the best if it meets the bound better; None if it fails or enters an
+        ellipse."""
+        nonlocal best, best_slack, entered_m
+        try:
+            refined = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                             max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
+        except SolverFailure as failure:
+            if best is None:
+                best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
+            return None
+        if len(intersected(refined.points, ellipses)):
+            entered_m = max(entered_m or 0.0, _entered_m(refined.points, stack))
+            return None
+        candidate = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
+        if refined.curvature_slack < best_slack:
+            best_slack, best = refined.curvature_slack, candidate
+        return candidate
+
     for attempt, (lead, extra_m) in enumerate(tries):
-        legs = _route(
-            start=start,
-            lead=lead,
-            goals=goals,
-            ellipses=ellipses,
-            bounds_min=bounds_min,
-            bounds_max=bounds_max,
-            level=settings.level,
-            extra_m=extra_m,
-            estimate_m=route_estimate_m,
-            keep_to=route_keep_to,
-        )
+        legs = search(goals, lead=lead, extra_m=extra_m)
         if legs is None:
             if attempt == 0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
@@ -307,33 +343,28 @@ def plan_path(
                 return route
         if attempt == 0 and heading_rad is not None:
             tries += [(turn, 0.0) for turn in _turns(start, heading_rad, legs[0], radius=_TURN_WIDER * radius,
-                                                        step_m=settings.spacing_m)
+                                                     step_m=settings.spacing_m)
                       if _clear(turn, ellipses, bounds_min, bounds_max, level=settings.level)]
-        try:
-            refined = refine(
-                legs=legs,
-                ellipses=ellipses,
-                bounds_min=bounds_min,
-                bounds_max=bounds_max,
-                max_curvature=max_curvature,
-                heading_rad=heading_rad,
-                settings=settings,
-            )
-        except SolverFailure as failure:
-            if best is None:
-                best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
+        if (candidate := refined_clear(legs)) is None:
             continue
-        if len(intersected(refined.points, ellipses)):
-            entered_m = max(entered_m or 0.0, _entered_m(refined.points, stack))
-            continue
-        candidate = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
         if meets_others(candidate, None):
             return candidate
-        if refined.curvature_slack < best_slack:
-            best_slack = refined.curvature_slack
-            best = candidate
-        if refined.curvature_slack <= 1e-6 or late():
+        if best_slack <= 1e-6 or late():
             break
+    else:
+        if (best is not None and best.status == "ok" and not late()
+                and _broken_near_end(best.points, 1.0 / radius, 4.0 * radius)):
+            routes = [legs[:-1] + [np.vstack([legs[-1], goals[-1:]])]
+                      for point in _approaches(goals[-1], ellipses, bounds_min, bounds_max, length_m=radius,
+                                               level=settings.level)
+                      if (legs := search(np.vstack([goals[:-1], point]))) is not None]
+            for legs in sorted(routes, key=lambda legs: sum(map(polyline_length, legs))):
+                if (candidate := refined_clear(legs)) is None:
+                    continue
+                if meets_others(candidate, None):
+                    return candidate
+                if best_slack <= 1e-6 or late():
+                    break
     if best is None:
         return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses",
                         entered_m=entered_m)

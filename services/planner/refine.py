@@ -527,10 +527,10 @@ def _linearise(
 
 def _curvature_met(z: FloatArray, kappa: float) -> bool:
     """Whether the discrete curvature of the points, measured with their actual spacing, is within kappa."""
-    return not np.any(_curvature_broken(z, kappa))
+    return not np.any(curvature_broken(z, kappa))
 
 
-def _curvature_broken(z: FloatArray, kappa: float) -> np.ndarray:
+def curvature_broken(z: FloatArray, kappa: float) -> np.ndarray:
     """For each interior point, whether its discrete curvature (measured with the actual spacing) exceeds kappa."""
     step = np.linalg.norm(np.diff(z, axis=0), axis=1)
     second = np.linalg.norm(z[2:] - 2 * z[1:-1] + z[:-2], axis=1)
@@ -756,7 +756,7 @@ def refine_in_windows(
     along = np.concatenate([[0.0], np.cumsum(length)])
     radius = 1.0 / (settings.curvature_factor * max_curvature)
     reach = settings.window_radii * radius
-    sharp = 1 + np.flatnonzero(_curvature_broken(z, settings.curvature_met_factor * max_curvature))
+    sharp = 1 + np.flatnonzero(curvature_broken(z, settings.curvature_met_factor * max_curvature))
     intervals = [(along[k] - reach, along[k] + reach) for k in sharp.tolist()]
     if heading_rad is not None:
         off = _off_heading(z[1] - z[0], heading_rad)
