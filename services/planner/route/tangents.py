@@ -128,15 +128,19 @@ def pair_tangents(frames: Frames, arcs: Arcs, i: FloatArray, j: FloatArray) -> S
     if not thetas:
         return Segments(*(np.zeros((0, 2)),) * 2, *(np.zeros(0, dtype=int),) * 2, *(np.zeros(0),) * 2)
     theta, sign, row = np.concatenate(thetas), np.concatenate(signs), np.concatenate(rows)
+    # The tangent points on i first: about half of those the windows let through are not on a free arc.
+    theta_p = np.mod(theta, 2.0 * np.pi)
+    on_free = arcs.free[arcs.locate(i[row], theta_p)[0]]
+    theta, theta_p, sign, row = theta[on_free], theta_p[on_free], sign[on_free], row[on_free]
     n = unit(theta)
     Sn = np.einsum("kij,kj->ki", S[row], n)
     h = np.sqrt(np.einsum("ki,ki->k", n, Sn))
     touch = c[row] + sign[:, None] * Sn / h[:, None]
-    p = frames.point(i[row], n)
     q = frames.point(i[row], touch)
-    theta_p, theta_q = np.mod(theta, 2.0 * np.pi), frames.angle(j[row], q)
-    free = arcs.free[arcs.locate(i[row], theta_p)[0]] & arcs.free[arcs.locate(j[row], theta_q)[0]]
-    return Segments(p, q, i[row], j[row], theta_p, theta_q).take(free)
+    theta_q = frames.angle(j[row], q)
+    free = arcs.free[arcs.locate(j[row], theta_q)[0]]
+    return Segments(frames.point(i[row[free]], n[free]), q[free], i[row[free]], j[row[free]], theta_p[free],
+                    theta_q[free])
 
 
 def terminal_tangents(frames: Frames, terminals: FloatArray, k: FloatArray, e: FloatArray) -> Segments:
