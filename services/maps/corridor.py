@@ -31,9 +31,9 @@ what the query can use is built:
    exact optimum of the model within its corridor (a relaxation's optimum that is feasible is optimal).
    A plan whose curve fails verification is held against them too: made among too few ellipses, it may
    have failed on a turn through a wall mass no tile of which was fitted, and is made again with the
-   ellipses it met. The route, each refined path and each curve are held so as soon as they are made
-   (`services.planner.core.plan_within`'s `meets_others`): no refinement, repair or smoothing is spent
-   on a plan made among too few ellipses. A search kept to the corridor that finds nothing (or nothing
+   ellipses it met. The shortest route within the corridor, each refined path and each curve are held
+   against the cover as soon as they are made (`services.planner.core.plan_within`'s `meets_others`):
+   no refinement, repair or smoothing is spent on a plan made among too few ellipses. A search kept to the corridor that finds nothing (or nothing
    drivable, meeting no other ellipse) is made again without it; one without it that finds no route
    among some of the ellipses proves there is none among all of them — in this cover. Once, the pieces
    holding the points of the coarse route that are the margin clear of every blocked cell are then
