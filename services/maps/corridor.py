@@ -389,7 +389,10 @@ def plan_in_corridor(
             # among too few ellipses (a route through a wall mass no tile of which was fitted, with a turn
             # there the car cannot make) says nothing of the map until the ellipses it met are in.
             if hit := meets(plan, smoothed):
-                used += hit
+                # With the pieces it met, those near its path: the next plan, moved off these, meets them.
+                planned = {id(piece) for piece in used + hit}
+                others = [piece for piece in fitted if id(piece) not in planned]
+                used += hit + [others[k] for k in sorted(_near(others, plan.points, settings.near_m))]
                 continue
             if smoothed is not None and smoothed.verification.ok:
                 break
