@@ -33,15 +33,16 @@ what the query can use is built:
    have failed on a turn through a wall mass no tile of which was fitted, and is made again with the
    ellipses it met. The shortest route within the corridor, each refined path and each curve are held
    against the cover as soon as they are made (`services.planner.core.plan_within`'s `meets_others`):
-   no refinement, repair or smoothing is spent on a plan made among too few ellipses. A search kept to the corridor that finds nothing (or nothing
-   drivable, meeting no other ellipse) is made again without it; one without it that finds no route
-   among some of the ellipses proves there is none among all of them — in this cover. Once, the pieces
-   holding the points of the coarse route that are the margin clear of every blocked cell are then
-   fitted again tighter (`GridCover.tighten`) and the plan made again: a door a few centimetres wider
-   than the robot's passage is open to the coarse grid and closed by the cover's tolerance. After a
-   curve that failed, the pieces its path ran within their own tolerance of are fitted again tighter
-   instead: a start facing along a wall a few centimetres beyond the margin may find no room to turn
-   at the car's curvature in the cover's excess.
+   no refinement, repair or smoothing is spent on a plan made among too few ellipses. Where a plan finds
+   no route (or none refined clear), once, the pieces holding the points of the coarse route that are
+   the margin clear of every blocked cell are fitted again tighter (`GridCover.tighten`) and the plan
+   made again in the corridor: a door a few centimetres wider than the robot's passage is open to the
+   coarse grid and closed by the cover's tolerance. A search kept to the corridor that still finds
+   nothing (or nothing drivable, meeting no other ellipse) is made again without it; one without it
+   that finds no route among some of the ellipses proves there is none among all of them — in this
+   cover. After a curve that failed among all it meets, once, the pieces its path ran within their own
+   tolerance of are fitted again tighter: a start facing along a wall a few centimetres beyond the
+   margin may find no room to turn at the car's curvature in the cover's excess.
 """
 
 from __future__ import annotations
@@ -378,7 +379,7 @@ def plan_in_corridor(
         return hit + [piece for piece in met_by(smoothed.points, _CURVE_LEVEL) if piece not in hit]
 
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
-    corridor, tightened = keep_to, False
+    corridor, opened, tightened = keep_to, False, False
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
         # A plan that meets a piece it was not made among is handed back at once (no other route or margin
@@ -396,22 +397,27 @@ def plan_in_corridor(
                 continue
             if smoothed is not None and smoothed.verification.ok:
                 break
-        if keep_to is None:
-            # No route among the ellipses, or none refined clear: the cover, up to its tolerance more
-            # conservative than the grown walls, may close a gap the coarse route passes through clear of
-            # them. Its pieces there are fitted again tighter, once, and the plan made again. A curve that
-            # failed may have been pushed by that excess where the path runs along walls (a start facing
-            # along a wall bulging into its way, a turn round specks): the pieces the path comes within
-            # their own tolerance of are fitted again tighter instead.
-            if not tightened and not (smoothed is not None and smoothed.verification.ok):
+        # No route among the ellipses, or none refined clear: the cover, up to its tolerance more
+        # conservative than the grown walls, may close a gap the coarse route passes through clear of them.
+        # Its pieces there are fitted again tighter, once, and the plan made again in the corridor (first:
+        # without it the route would roam the map past the gap). A curve that failed among all it meets
+        # may have been pushed by that excess where the path runs along walls (a start facing along a wall
+        # bulging into its way, a turn round specks): once, the pieces the path comes within their own
+        # tolerance of are fitted again tighter instead.
+        no_route = plan.status == "no_path"
+        if (no_route and not opened) or (not no_route and keep_to is None and not tightened):
+            if no_route:
+                opened = True
+            else:
                 tightened = True
-                with timer("fit"):
-                    if (cover.tighten(_clear_along(cover, coarse)) if plan.status == "no_path"
-                            else cover.tighten(plan.points, near=True)):
-                        fitted = cover.pieces(tiles)
-                        used = _renewed(used, fitted, line, settings.near_m)
-                        keep_to = corridor
-                        continue
+            with timer("fit"):
+                if (cover.tighten(_clear_along(cover, coarse)) if no_route
+                        else cover.tighten(plan.points, near=True)):
+                    fitted = cover.pieces(tiles)
+                    used = _renewed(used, fitted, line, settings.near_m)
+                    keep_to = corridor
+                    continue
+        if keep_to is None:
             break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
     else:
