@@ -311,24 +311,26 @@ def plan_path(
     best_slack = np.inf
     entered_m = None
 
-    def refined_clear(legs: list[FloatArray]) -> PathPlan | None:
-        """The route refined, kept as the best if it meets the bound better; None if it fails or enters an
-        ellipse."""
+    def refined(legs: list[FloatArray]) -> tuple[PathPlan | None, bool]:
+        """The route refined, kept as the best if it meets the bound better: (a plan to return at once, one
+        that meets others, or None; whether to try no further route: one met the bound, or it is late)."""
         nonlocal best, best_slack, entered_m
         try:
-            refined = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
-                             max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
+            result = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                            max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
         except SolverFailure as failure:
             if best is None:
                 best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
-            return None
-        if len(intersected(refined.points, ellipses)):
-            entered_m = max(entered_m or 0.0, _entered_m(refined.points, stack))
-            return None
-        candidate = PathPlan("ok", refined.points, refined.goal_indices, iterations=refined.iterations)
-        if refined.curvature_slack < best_slack:
-            best_slack, best = refined.curvature_slack, candidate
-        return candidate
+            return None, False
+        if len(intersected(result.points, ellipses)):
+            entered_m = max(entered_m or 0.0, _entered_m(result.points, stack))
+            return None, False
+        candidate = PathPlan("ok", result.points, result.goal_indices, iterations=result.iterations)
+        if meets_others(candidate, None):
+            return candidate, True
+        if result.curvature_slack < best_slack:
+            best_slack, best = result.curvature_slack, candidate
+        return None, best_slack <= 1e-6 or late()
 
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = search(goals, lead=lead, extra_m=extra_m)
@@ -345,11 +347,10 @@ def plan_path(
             tries += [(turn, 0.0) for turn in _turns(start, heading_rad, legs[0], radius=_TURN_WIDER * radius,
                                                      step_m=settings.spacing_m)
                       if _clear(turn, ellipses, bounds_min, bounds_max, level=settings.level)]
-        if (candidate := refined_clear(legs)) is None:
-            continue
-        if meets_others(candidate, None):
-            return candidate
-        if best_slack <= 1e-6 or late():
+        handed, enough = refined(legs)
+        if handed is not None:
+            return handed
+        if enough:
             break
     else:
         if (best is not None and best.status == "ok" and not late()
@@ -359,11 +360,10 @@ def plan_path(
                                                level=settings.level)
                       if (legs := search(np.vstack([goals[:-1], point]))) is not None]
             for legs in sorted(routes, key=lambda legs: sum(map(polyline_length, legs))):
-                if (candidate := refined_clear(legs)) is None:
-                    continue
-                if meets_others(candidate, None):
-                    return candidate
-                if best_slack <= 1e-6 or late():
+                handed, enough = refined(legs)
+                if handed is not None:
+                    return handed
+                if enough:
                     break
     if best is None:
         return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses",
