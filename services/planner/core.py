@@ -355,10 +355,12 @@ def plan_path(
     else:
         if (best is not None and best.status == "ok" and not late()
                 and _broken_near_end(best.points, 1.0 / radius, 4.0 * radius)):
-            routes = [legs[:-1] + [np.vstack([legs[-1], goals[-1:]])]
-                      for point in _approaches(goals[-1], ellipses, bounds_min, bounds_max, length_m=radius,
-                                               level=settings.level)
-                      if (legs := search(np.vstack([goals[:-1], point]))) is not None]
+            routes = []
+            for point in _approaches(goals[-1], ellipses, bounds_min, bounds_max, length_m=radius,
+                                     level=settings.level):
+                to_point = search(np.vstack([goals[:-1], point]))
+                if to_point is not None:
+                    routes.append(to_point[:-1] + [np.vstack([to_point[-1], goals[-1:]])])
             for legs in sorted(routes, key=lambda legs: sum(map(polyline_length, legs))):
                 handed, enough = refined(legs)
                 if handed is not None:
