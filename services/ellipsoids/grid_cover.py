@@ -127,6 +127,7 @@ class GridCover:
         rows, cols = self.grid.shape
         self.tiles_shape = (-(-(cols + 2) // self.tile_cells), -(-(rows + 2) // self.tile_cells))
         self.fit_count = 0  # ellipse fits made (a piece that is split counts too), for reports
+        self._distances: dict[Tile, NDArray[np.float32]] = {}  # each fitted tile's cells' D (`DistanceWindow`)
 
     @property
     def reach_m(self) -> float:
@@ -177,6 +178,23 @@ class GridCover:
             self._fit_blocks(_blocks(missing))
         return [piece for t in wanted for piece in self.fitted[t]]
 
+    def distance_at(self, points: FloatArray) -> FloatArray:
+        """D (`DistanceWindow`) at the cells under world points, as the tiles were fitted on it (tiles not
+        fitted are fitted first): within a cell of a point's clearance up to the margin plus the tolerance,
+        above that beyond; 0 beyond the map's ring of blocked cells."""
+        g = self.grid.to_grid(points) / self.grid.resolution_m + 1.0  # cells from the ring's corner
+        i, j = np.floor(g[:, 0]).astype(np.intp), np.floor(g[:, 1]).astype(np.intp)
+        tiles = np.column_stack([i // self.tile_cells, j // self.tile_cells])
+        rows, cols = self.grid.shape
+        inside = (i >= 0) & (j >= 0) & (i < cols + 2) & (j < rows + 2)
+        out = np.zeros(len(g))
+        wanted = [tuple(t) for t in np.unique(tiles[inside], axis=0).tolist()]
+        self.pieces(wanted)
+        for a, b in wanted:
+            here = np.flatnonzero(inside & (tiles[:, 0] == a) & (tiles[:, 1] == b))
+            out[here] = self._distances[a, b][j[here] - b * self.tile_cells, i[here] - a * self.tile_cells]
+        return out
+
     def tighten(self, points: FloatArray, *, tolerances_m: tuple[float, ...] = _TIGHTER_M, near: bool = False) -> bool:
         """Refit the fitted pieces whose grown ellipse holds one of the world points, at each of the smaller
         tolerances in turn, until none does; whether any piece was refitted. A piece already fitted to a
@@ -191,11 +209,11 @@ class GridCover:
         covered (each new piece proved as every piece is), by more and tighter ellipses where the points
         are; a point truly within the margin of a blocked cell stays inside at every tolerance.
         """
-        points = np.atleast_2d(np.asarray(points, dtype=float))
+        points = np.asarray(points, dtype=float).reshape(-1, 2)
         changed = False
         for tolerance in tolerances_m:
             pieces = [(tile, piece) for tile, kept in self.fitted.items() for piece in kept]
-            if not pieces:
+            if not pieces or not len(points):
                 break
             Ab = np.array([piece.grown_Ab for _, piece in pieces])  # (k, 2, 3)
             u = np.einsum("kij,pj->kpi", Ab[:, :, :2], points) + Ab[:, None, :, 2]
@@ -240,6 +258,9 @@ class GridCover:
             rows, cols = window.distance.shape
             for tile in group:
                 self.fitted[tile] = []
+                r, c = self.tile_range(tile)
+                self._distances[tile] = window.distance[r.start - window.row0 : r.stop - window.row0,
+                                                        c.start - window.col0 : c.stop - window.col0].copy()
             for block in _rectangles(group):
                 if (part := self._pieces_of(block)) is not None:
                     cells, piece, boxes = part

@@ -165,6 +165,32 @@ def test_a_distance_window_is_the_rounding_of_the_exact_distance_on_every_call()
         assert np.array_equal(cover._window(group).distance, first.distance)
 
 
+@pytest.mark.parametrize("yaw", [0.0, 0.35])
+def test_the_distance_at_points_reads_their_clearance_within_a_cell(shared_dir: Path, yaw: float):
+    """`GridCover.distance_at` reads the tiles' transforms (fitting the tiles asked about): within a cell of
+    the exact clearance wherever that is below the margin plus the tolerance (the point is half a diagonal
+    from its cell's centre, whose D may exceed the centre's clearance by (√2 − 1) / 2 of a cell), above it
+    beyond, 0 in blocked cells and beyond the map's ring."""
+    depot = load_map(shared_dir / "maps" / "depot.yaml")
+    grid = OccupancyGrid(state=depot.state, resolution_m=depot.resolution_m, origin_x_m=2.0, origin_y_m=-1.0,
+                         origin_yaw_rad=yaw)
+    cover = GridCover(grid, margin_m=0.45)
+    res = grid.resolution_m
+    rng = np.random.default_rng(5)
+    w, h = grid.size_m
+    points = grid.to_world(rng.uniform((-1.0, -1.0), (w + 1.0, h + 1.0), size=(4000, 2)))
+    read, exact = cover.distance_at(points), grid.clearance(points)
+    bound = 0.45 + cover.settings.tolerance_m
+    near = exact < bound
+    assert near.sum() > 1000 and (~near).sum() > 1000
+    assert np.all(np.abs(read[near] - exact[near]) <= res)
+    assert np.all(read[~near] >= bound - res)
+    frame = grid.to_grid(points)
+    beyond = np.any((frame < -res) | (frame > np.array((w, h)) + res), axis=1)
+    assert beyond.sum() > 100 and np.all(read[beyond] == 0.0)
+    assert np.all(read[exact == 0.0] == 0.0)
+
+
 def test_a_tile_far_from_every_blocked_cell_has_no_pieces_and_a_finite_window():
     """Open floor wider than a window (a hall, a yard): OpenCV's transform of a window with no blocked cell
     is 2⁶⁴ everywhere, which once overflowed to infinity with a RuntimeWarning on the user's terminal."""
