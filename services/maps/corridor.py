@@ -16,9 +16,11 @@ what the query can use is built:
    tell them: a door the robot does not fit is closed in the coarse grid too, and the corridor never
    runs through it.)
 2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor, its pieces
-   that hold the start or a goal fitted again tighter (`GridCover.tighten`). A wall beside the corridor
-   lies up to the margin from its cells, its grown ellipses reach into it: the band is wider than the
-   corridor by about the margin.
+   that hold the start or a goal fitted again tighter (`GridCover.tighten`), and those that hold the
+   clearest points of the passages the coarse route runs through narrower than the margin plus the
+   cover's tolerance on both sides (`_doors_along`: a door a few centimetres wider than the robot's
+   passage, which the cover's excess may close). A wall beside the corridor lies up to the margin from
+   its cells, its grown ellipses reach into it: the band is wider than the corridor by about the margin.
 3. The exact route search and refinement (`services.planner.core.plan_until_verified`: tangent graph,
    convex refinement, verified smoothing) on the fitted ellipses near the corridor alone, the route's
    tangent segments kept to the corridor (`_Corridor`): without that the route search, which sees no
@@ -36,8 +38,8 @@ what the query can use is built:
    no refinement, repair or smoothing is spent on a plan made among too few ellipses. Where a plan finds
    no route (or none refined clear), once, the pieces holding the points of the coarse route that are
    the margin clear of every blocked cell are fitted again tighter (`GridCover.tighten`) and the plan
-   made again in the corridor: a door a few centimetres wider than the robot's passage is open to the
-   coarse grid and closed by the cover's tolerance. A search kept to the corridor that still finds
+   made again in the corridor: a gap open to the coarse grid that the cover's tolerance closes and the
+   passages found before the first plan did not take in. A search kept to the corridor that still finds
    nothing (or nothing drivable, meeting no other ellipse) is made again without it; one without it
    that finds no route among some of the ellipses proves there is none among all of them — in this
    cover. After a curve that failed among all it meets, once, the pieces its path ran within their own
@@ -348,6 +350,8 @@ def plan_in_corridor(
         line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
         tiles = cover.tiles_near(line, settings.band_m)
         fitted = _pieces(cover, tiles, waypoints)
+        if cover.tighten(_doors_along(cover, coarse)):  # before the first plan: a closed door costs a round
+            fitted = cover.pieces(tiles)
         used = [fitted[k] for k in sorted(_near(fitted, line, settings.near_m))]  # in the tiles' order
         keep_to = (_Corridor.of(coarse_grid, coarse, waypoints, keep_m=settings.keep_m)
                    if settings.keep_to_corridor else None)
@@ -478,6 +482,35 @@ def _clear_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
     """The coarse route's points, 5 cm apart, that are at least the margin from every blocked cell."""
     points = _densify(coarse.points, 0.05)
     return points[cover.grid.clearance(points) >= cover.margin_m]
+
+
+_ACROSS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])  # where a door's width is sampled across the route (`_doors_along`)
+
+
+def _doors_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
+    """The clearest points of passages the coarse route runs through that the cover's tolerance may close.
+
+    At each of the route's points, 10 cm apart, that are less than the margin plus the tolerance from a
+    blocked cell, the clearance (as the cover's distance transforms read it, within a cell) is sampled
+    across the route, out to the tolerance (and the route's shortfall below the margin) on either side:
+    where no sample is the margin plus the tolerance clear,
+    the passage is narrower than that on both sides (a door, not a corner), and its clearest sample, if
+    at least the margin clear, is where the cover may close it."""
+    points = _densify(coarse.points, 0.1)
+    if len(points) < 2:
+        return np.zeros((0, 2))
+    margin, tolerance = cover.margin_m, cover.settings.tolerance_m
+    clear = cover.distance_at(points)
+    step = np.gradient(points, axis=0)
+    normal = np.column_stack([-step[:, 1], step[:, 0]]) / np.maximum(np.linalg.norm(step, axis=1), 1e-12)[:, None]
+    near = np.flatnonzero((clear > 0.0) & (clear < margin + tolerance))
+    reach = tolerance + np.maximum(margin - clear[near], 0.0)
+    across = points[near, None, :] + (reach[:, None] * _ACROSS)[:, :, None] * normal[near, None, :]
+    sampled = cover.distance_at(across.reshape(-1, 2)).reshape(len(near), len(_ACROSS))
+    widest = np.argmax(sampled, axis=1)
+    best = sampled[np.arange(len(near)), widest]
+    door = (best >= margin) & (best < margin + tolerance)
+    return across[np.flatnonzero(door), widest[door]]
 
 
 def _renewed(used: list[GridPiece], fitted: list[GridPiece], line: FloatArray, near_m: float) -> list[GridPiece]:
