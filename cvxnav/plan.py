@@ -37,7 +37,9 @@ class PlanSettings:
     refine: RefineSettings = field(default_factory=RefineSettings)
     # When the smoothed curve fails verification, re-optimise with wider margins, in this order.
     repairs: tuple[tuple[float, float], ...] = ((1.05, 0.8),)  # (level, curvature_factor)
-    grid_cover: GridCoverSettings = field(default_factory=GridCoverSettings)  # occupancy grids' cover
+    # Occupancy grids' cover: looser than the cover's default (0.1 m), which the live stage keeps, since the
+    # corridor planner fits it tighter where that closes a passage (`services.maps.corridor`).
+    grid_cover: GridCoverSettings = field(default_factory=lambda: GridCoverSettings(tolerance_m=0.15))
     corridor: CorridorSettings = field(default_factory=CorridorSettings)  # ... and where it is fitted
     # On an occupancy grid the route is long and mostly straight: it is refined in windows round its turns
     # and its start, this many turning radii wide (`RefineSettings.window_radii`).

@@ -104,7 +104,7 @@ def test_a_goal_a_centimetre_beyond_the_margin_from_a_wall_is_planned_to(shared_
 
 def test_a_start_facing_past_wall_specks_just_beyond_the_margin_is_planned_from(shared_dir: Path, tmp_path: Path):
     # A random ACES query: the car starts facing north 0.11 m beyond the margin from a row of wall specks.
-    # The cover's pieces, up to 0.1 m beyond the grown specks, left it no room to veer at its curvature
+    # The cover's pieces, up to 0.1 m (its tolerance then) beyond the grown specks, left it no room to veer at its curvature
     # (no_path: 2.9 / m at 6 cm), where BIT* on Dubins curves at the same radius found 26.33 m on the grid.
     # The pieces the failed path runs within their own tolerance of are fitted again tighter.
     aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
