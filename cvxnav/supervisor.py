@@ -97,7 +97,7 @@ from schemas.scenario import Scenario
 from schemas.wiring import DEFAULT_ROBOT_ID, MONITOR, PIPELINE, ROS2, SIM, STAGES, default_prefix, key
 from services.ros2.bridge import BridgeConfig
 from services.shell.peers import alive_stages, wait_for_stages
-from services.shell.watchdog import STALL_LIMIT_S, NotifySocket, watchdog_supported
+from services.shell.watchdog import STALL_LIMIT_S, NotifySocket, notify_socket_in, watchdog_supported
 from services.shell.zenoh_config import config_from_doc, endpoints_config, zenoh_reason
 
 logger = logging.getLogger(__name__)
@@ -335,8 +335,8 @@ class Supervisor:
         if not watchdog_supported():
             return None
         try:
-            return NotifySocket(path=self.log_dir / "notify.sock")
-        except OSError as error:  # e.g. a TMPDIR too long for a unix socket's path
+            return notify_socket_in(self.log_dir)
+        except OSError as error:
             logger.warning("no watchdog for this run's stages (a hang will not be seen): %s", error)
             return None
 
@@ -412,7 +412,7 @@ class Supervisor:
     def _spawn(self, command: list[str], *, log_path: Path, standby: bool = False) -> subprocess.Popen:
         env = dict(os.environ)
         if self.notify is not None:
-            env.update(NOTIFY_SOCKET=str(self.notify.path), WATCHDOG_USEC=str(round(self.options.watchdog_s * 1e6)))
+            env.update(NOTIFY_SOCKET=self.notify.address, WATCHDOG_USEC=str(round(self.options.watchdog_s * 1e6)))
         with open(log_path, "wb") as log:
             return subprocess.Popen(command, stdin=subprocess.PIPE if standby else subprocess.DEVNULL, stdout=log,
                                     stderr=subprocess.STDOUT, start_new_session=True, env=env,

@@ -120,15 +120,18 @@ class NotifySocket:
     """The receiving end: a unix datagram socket that tells each message's sender by its pid (Linux).
 
     The kernel attaches the sender's credentials to every datagram (``SO_PASSCRED``), so a child is
-    known by the pid its supervisor started, not by anything it says about itself.
+    known by the pid its supervisor started, not by anything it says about itself. `address` is a
+    path, or ``@name`` for Linux's abstract namespace (as ``NOTIFY_SOCKET`` writes it): no file, and no
+    108-byte bound on a path.
     """
 
-    def __init__(self, *, path: Path) -> None:
-        self.path = path
+    def __init__(self, *, address: str) -> None:
+        self.address = address
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
-            self._sock.bind(str(path))  # OSError for a path longer than sun_path (108 bytes)
+            # OSError for a path longer than sun_path (108 bytes), or a name already bound.
+            self._sock.bind("\0" + address[1:] if address.startswith("@") else address)
         except OSError:
             self._sock.close()
             raise
@@ -149,7 +152,17 @@ class NotifySocket:
 
     def close(self) -> None:
         self._sock.close()
-        self.path.unlink(missing_ok=True)
+        if not self.address.startswith("@"):
+            Path(self.address).unlink(missing_ok=True)
+
+
+def notify_socket_in(folder: Path) -> NotifySocket:
+    """A `NotifySocket` at ``folder/notify.sock``; where that path is too long for a unix socket (a deep
+    TMPDIR), one named after the folder in the abstract namespace (a name taken is an OSError too)."""
+    try:
+        return NotifySocket(address=str(folder / "notify.sock"))
+    except OSError:
+        return NotifySocket(address=f"@{folder.name}/notify")
 
 
 def watchdog_supported() -> bool:

@@ -20,7 +20,7 @@ from cvxnav.supervisor import free_ports
 from schemas.messages import Header, Pose2D, Scan
 from schemas.wiring import key
 from services.shell.stage import run_stage
-from services.shell.watchdog import NotifySocket, Progress, Watchdog, keep_alive
+from services.shell.watchdog import NotifySocket, Progress, Watchdog, keep_alive, notify_socket_in
 from services.shell.zenoh_config import build_zenoh_config
 
 INTERVAL_S = 0.4  # WATCHDOG_USEC: a keep-alive every 0.1 s
@@ -54,7 +54,7 @@ def listen(notify: NotifySocket, *, for_s: float) -> list[str]:
 def watched_stage(core: HoldingSensing, notify: NotifySocket) -> Iterator[tuple[zenoh.Session, str]]:
     endpoint = f"tcp/127.0.0.1:{free_ports(1)[0]}"
     prefix, stop, ready, progress = f"test/{uuid.uuid4().hex[:8]}", threading.Event(), threading.Event(), Progress()
-    keep_alive(watchdog=Watchdog(address=str(notify.path), interval_s=INTERVAL_S), progress=progress,
+    keep_alive(watchdog=Watchdog(address=notify.address, interval_s=INTERVAL_S), progress=progress,
                stall_limit_s=STALL_LIMIT_S, stop_event=stop)
     worker = threading.Thread(target=run_stage, daemon=True, kwargs=dict(
         stage="sensing", core=core, session_config=build_zenoh_config(listen=[endpoint]), prefix=prefix,
@@ -71,7 +71,7 @@ def watched_stage(core: HoldingSensing, notify: NotifySocket) -> Iterator[tuple[
 
 
 def test_keep_alives_stop_while_one_input_holds_the_worker_past_the_stall_limit(tmp_path: Path):
-    notify, core = NotifySocket(path=tmp_path / "notify.sock"), HoldingSensing()
+    notify, core = NotifySocket(address=str(tmp_path / "notify.sock")), HoldingSensing()
     try:
         with watched_stage(core, notify) as (session, prefix):
             idle = listen(notify, for_s=0.5)
@@ -107,5 +107,28 @@ def test_a_socket_path_too_long_for_unix_is_an_oserror_that_leaves_no_socket_ope
     deep.mkdir()
     open_before = len(os.listdir("/proc/self/fd"))
     with pytest.raises(OSError):
-        NotifySocket(path=deep / "notify.sock")
+        NotifySocket(address=str(deep / "notify.sock"))
     assert len(os.listdir("/proc/self/fd")) == open_before
+
+
+def test_a_run_folder_too_deep_for_a_socket_path_gets_an_abstract_socket_that_hears_keep_alives(tmp_path: Path):
+    # A TMPDIR deep enough that the run's notify.sock cannot be bound (sun_path holds 108 bytes) left the
+    # run's stages without a watchdog, and a warning line before any error. The socket is named after the
+    # run's folder in Linux's abstract namespace instead, as NOTIFY_SOCKET says it ("@name"), and a stage
+    # reading that from its environment is heard, known by its pid.
+    deep = tmp_path / ("d" * 120) / "cvxnav-run-test"
+    deep.mkdir(parents=True)
+    notify = notify_socket_in(deep)
+    stop, progress = threading.Event(), Progress()
+    try:
+        assert notify.address == "@cvxnav-run-test/notify"
+        watchdog = Watchdog.from_environment({"NOTIFY_SOCKET": notify.address, "WATCHDOG_USEC": str(int(INTERVAL_S * 1e6))})
+        progress.beat()
+        keep_alive(watchdog=watchdog, progress=progress, stall_limit_s=STALL_LIMIT_S, stop_event=stop)
+        assert "WATCHDOG=1" in listen(notify, for_s=4 * INTERVAL_S)
+        with pytest.raises(OSError):  # the name is the run's own while it is bound
+            notify_socket_in(deep)
+    finally:
+        stop.set()
+        notify.close()
+    assert not list(deep.iterdir())  # no file was made for it
