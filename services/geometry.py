@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from itertools import chain
@@ -535,6 +536,11 @@ def distance(x: FloatArray, y: FloatArray) -> FloatArray:
 def polyline_length(points: ArrayLike) -> float:
     z = np.asarray(points, dtype=float)
     return float(np.sum(np.linalg.norm(np.diff(z, axis=0), axis=1)))
+
+
+def joined_legs(legs: Sequence[ArrayLike]) -> FloatArray:
+    """Legs that each start where the one before ends, as one polyline (each joint once)."""
+    return np.vstack([np.asarray(legs[0], dtype=float), *(np.asarray(leg, dtype=float)[1:] for leg in legs[1:])])
 
 
 def resample_polyline(points: ArrayLike, *, max_spacing_m: float) -> FloatArray:

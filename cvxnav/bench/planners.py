@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from cvxnav.bench.problem import BenchProblem
-from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length, resample_polyline
+from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length, resample_polyline
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,7 @@ def plan_optimum(problem: BenchProblem) -> Attempt:
     elapsed = time.perf_counter() - t0
     if route is None:
         return Attempt(path=None, time_s=elapsed, reason="tangent graph: no route")
-    path = np.vstack([route.legs[0]] + [leg[1:] for leg in route.legs[1:]])
+    path = joined_legs(route.legs)
     return Attempt(path=path, time_s=elapsed, extra={f"leg{k}_m": length for k, length in enumerate(route.lengths_m)})
 
 
@@ -251,14 +251,14 @@ def plan_ompl(
         elapsed = time.perf_counter() - t0
         if leg is None:
             return Attempt(path=None, time_s=total_s + elapsed, reason=f"{planner}: no path in {budget_s:g} s")
-        path.append(leg if not path else leg[1:])
+        path.append(leg)
         first_s += first[0] if first else elapsed
         hit = elapsed if polyline_length(leg) <= target_factor * leg_optimum else None
         reached &= hit is not None
         target_s += hit if hit is not None else elapsed
         total_s += elapsed
     return Attempt(
-        path=np.vstack(path),
+        path=joined_legs(path),
         time_s=target_s,
         first_solution_s=first_s,
         target_s=target_s if reached else None,
@@ -356,11 +356,11 @@ def plan_drake_gcs(
             leg = np.vstack(corners)
             keep = np.concatenate([[True], np.linalg.norm(np.diff(leg, axis=0), axis=1) > 1e-9])
             leg = leg[keep]
-            path.append(leg if not path else leg[1:])
+            path.append(leg)
     except RuntimeError as error:  # Drake reports solver and IRIS failures as RuntimeError
         return Attempt(path=None, time_s=time.perf_counter() - t0, reason=" ".join(f"Drake: {error}".split())[:160])
     return Attempt(
-        path=np.vstack(path),
+        path=joined_legs(path),
         time_s=time.perf_counter() - t0,
         extra={"iris_ms": 1e3 * iris_s, "regions": float(len(regions))},
     )

@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
+from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -339,7 +339,7 @@ def plan_path(
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
         if attempt == 0 and route_keep_to is not None:
-            route = PathPlan("ok", np.vstack([legs[0], *(leg[1:] for leg in legs[1:])]),
+            route = PathPlan("ok", joined_legs(legs),
                              tuple(accumulate(len(leg) - 1 for leg in legs)))
             if meets_others(route, None):
                 return route
