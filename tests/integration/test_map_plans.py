@@ -30,6 +30,27 @@ def _assert_verified(scenario, plan) -> np.ndarray:
     return path
 
 
+def _aces(shared_dir: Path, tmp_path: Path, name: str, *, start: tuple[float, float, float],
+          goal: tuple[float, float]):
+    """A query on the ACES building's map, written as a scenario/2 file and read back (skipped without it)."""
+    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    if not aces.is_file():
+        pytest.skip(f"{aces} is absent")
+    doc = _scenario_doc(name, map_path=str(aces), start=start, goal=goal, description="")
+    (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    return load_scenario(tmp_path / f"{name}.json")
+
+
+def _corridor_plans(monkeypatch: pytest.MonkeyPatch) -> list:
+    """What each `plan_in_corridor` that `plan_scenario` calls returns, as it is called."""
+    import cvxnav.plan
+
+    found = []
+    real = cvxnav.plan.plan_in_corridor
+    monkeypatch.setattr(cvxnav.plan, "plan_in_corridor", lambda **kw: found.append(real(**kw)) or found[-1])
+    return found
+
+
 @pytest.mark.parametrize("name", ["depot-1", "depot-2"])
 def test_a_depot_query_is_within_2_percent_of_the_true_optimum(shared_dir: Path, name: str):
     folder = shared_dir / "map-scenarios"
@@ -40,13 +61,8 @@ def test_a_depot_query_is_within_2_percent_of_the_true_optimum(shared_dir: Path,
 
 
 def test_a_corridor_query_on_the_aces_building(shared_dir: Path, tmp_path: Path):
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
     a, b, heading = _ACES_QUERIES[0]
-    doc = _scenario_doc("aces", map_path=str(aces), start=(*_ACES[a], heading), goal=_ACES[b], description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces", start=(*_ACES[a], heading), goal=_ACES[b])
     plan = plan_scenario(scenario)
     path = _assert_verified(scenario, plan)
     # Along the corridors: longer than the straight line, shorter than a grid planner's 8-connected path.
@@ -59,13 +75,8 @@ def test_a_plan_that_fails_among_too_few_ellipses_is_made_again_among_those_it_m
     # the corridor's walls alone, takes a route through a wall mass no tile of which was fitted, with a
     # turn there the car cannot make. Its failure said nothing of the map: the ellipses it met are added
     # and the plan made again (before, the failed curve ended the search as no_path).
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    doc = _scenario_doc("aces-wall-mass", map_path=str(aces), start=(9.609, -19.254, np.pi), goal=(-0.591, -36.954),
-                        description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces-wall-mass", start=(9.609, -19.254, np.pi),
+                     goal=(-0.591, -36.954))
     _assert_verified(scenario, plan_scenario(scenario))
 
 
@@ -73,13 +84,8 @@ def test_a_car_facing_away_from_its_route_loops_round_where_the_short_turn_does_
     # In an ACES corridor 3.5 m wide the car faces east-north-east and its goal is 8.5 m south: the right
     # turn onto the route needs more room than the wall leaves, and the refinement, which keeps the side
     # of a turn it is handed, cannot find the loop left round on its own; the turning lead-ins hand it one.
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    doc = _scenario_doc("aces-loop", map_path=str(aces), start=(-0.041, -6.604, 0.2397), goal=(-0.391, -15.054),
-                        description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces-loop", start=(-0.041, -6.604, 0.2397),
+                     goal=(-0.391, -15.054))
     path = _assert_verified(scenario, plan_scenario(scenario))
     heading = np.unwrap(np.arctan2(*np.diff(path, axis=0).T[::-1]))
     assert heading.max() - heading[0] > np.pi / 2  # it turned left (anticlockwise) first, and far
@@ -90,13 +96,8 @@ def test_a_goal_a_centimetre_beyond_the_margin_from_a_wall_is_planned_to(shared_
     # by the grid planner's rule, and inside the wall's grown ellipse, which may stick out of the grown
     # wall by the cover's tolerance: "a goal lies inside an obstacle's grown ellipse" it was. The pieces
     # holding it are refitted tighter (`GridCover.tighten`), and the plan reaches it, clear of the walls.
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    doc = _scenario_doc("aces-goal-by-a-wall", map_path=str(aces), start=(-0.691, -8.504, -np.pi / 2),
-                        goal=(1.459, -21.354), description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces-goal-by-a-wall", start=(-0.691, -8.504, -np.pi / 2),
+                     goal=(1.459, -21.354))
     beyond = scenario.clearance(scenario.goals_array)[0] - scenario.inflation_m
     assert 0.0 < beyond < 0.02
     _assert_verified(scenario, plan_scenario(scenario))
@@ -104,16 +105,12 @@ def test_a_goal_a_centimetre_beyond_the_margin_from_a_wall_is_planned_to(shared_
 
 def test_a_start_facing_past_wall_specks_just_beyond_the_margin_is_planned_from(shared_dir: Path, tmp_path: Path):
     # A random ACES query: the car starts facing north 0.11 m beyond the margin from a row of wall specks.
-    # The cover's pieces, up to 0.1 m (its tolerance then) beyond the grown specks, left it no room to veer at its curvature
-    # (no_path: 2.9 / m at 6 cm), where BIT* on Dubins curves at the same radius found 26.33 m on the grid.
+    # The cover's pieces, up to 0.1 m (its tolerance then) beyond the grown specks, left it no room to veer
+    # at its curvature (no_path: 2.9 / m at 6 cm), where BIT* on Dubins curves at the same radius found
+    # 26.33 m on the grid.
     # The pieces the failed path runs within their own tolerance of are fitted again tighter.
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    doc = _scenario_doc("aces-start-by-specks", map_path=str(aces), start=(23.359, -2.304, 1.5208),
-                        goal=(-0.941, -1.854), description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces-start-by-specks", start=(23.359, -2.304, 1.5208),
+                     goal=(-0.941, -1.854))
     path = _assert_verified(scenario, plan_scenario(scenario))
     assert polyline_length(path) <= 26.33  # BIT* Dubins' length on the same query
 
@@ -124,13 +121,8 @@ def test_a_goal_tucked_beside_a_wall_corner_is_approached_from_beyond_it(shared_
     # kept to it (no_path, 1.8 / m 1.7 m before the goal), where BIT* on Dubins curves found 30.00 m. Among
     # routes that come in straight to the goal from a turning radius away, one from the north-west lets it
     # swing wide of the corner and back.
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    doc = _scenario_doc("aces-goal-by-a-corner", map_path=str(aces), start=(23.609, -5.704, np.pi / 2),
-                        goal=(1.009, -1.854), description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces-goal-by-a-corner", start=(23.609, -5.704, np.pi / 2),
+                     goal=(1.009, -1.854))
     path = _assert_verified(scenario, plan_scenario(scenario))
     assert path[:, 0].min() <= scenario.goals_array[0, 0] - 0.5  # swung wide of the corner and back
 
@@ -142,18 +134,9 @@ def test_the_first_corridor_on_aces_holds_every_wall_its_plan_meets(shared_dir: 
     # where the plan goes, and the tiles fitted round it hold the walls beside it, whose grown ellipses
     # reach in from up to the margin away: the bench's ACES queries are planned in one round (east →
     # north took three, 2.8 s instead of 0.13, while the band fitted before the first plan was 0.3 m).
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    import cvxnav.plan
-
-    found = []
-    real = cvxnav.plan.plan_in_corridor
-    monkeypatch.setattr(cvxnav.plan, "plan_in_corridor", lambda **kw: found.append(real(**kw)) or found[-1])
+    found = _corridor_plans(monkeypatch)
     a, b, heading = query
-    doc = _scenario_doc("aces", map_path=str(aces), start=(*_ACES[a], heading), goal=_ACES[b], description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    scenario = _aces(shared_dir, tmp_path, "aces", start=(*_ACES[a], heading), goal=_ACES[b])
     _assert_verified(scenario, plan_scenario(scenario))
     assert [plan.rounds for plan in found] == [1]
 
@@ -166,20 +149,12 @@ def test_a_passage_a_centimetre_wider_than_the_robots_is_opened_before_the_first
     # gap was opened in later rounds (four plans, 0.1 m tolerance). The coarse route is seen to run through
     # a passage narrower than the margin plus the tolerance on both sides before the first plan, and the
     # pieces holding its clearest points are fitted again tighter: one plan.
-    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
-    if not aces.is_file():
-        pytest.skip(f"{aces} is absent")
-    import cvxnav.plan
-    from cvxnav.bench.maps import _grid
     from cvxnav.bench.grid_planner import plan_on_grid
+    from cvxnav.bench.maps import _grid
 
-    found = []
-    real = cvxnav.plan.plan_in_corridor
-    monkeypatch.setattr(cvxnav.plan, "plan_in_corridor", lambda **kw: found.append(real(**kw)) or found[-1])
-    doc = _scenario_doc("aces-narrow-passage", map_path=str(aces), start=(4.959, -18.054, np.pi), goal=(2.009, 4.346),
-                        description="")
-    (tmp_path / "aces.json").write_text(json.dumps(doc))
-    scenario = load_scenario(tmp_path / "aces.json")
+    found = _corridor_plans(monkeypatch)
+    scenario = _aces(shared_dir, tmp_path, "aces-narrow-passage", start=(4.959, -18.054, np.pi),
+                     goal=(2.009, 4.346))
     narrower = plan_on_grid(_grid(scenario), start=scenario.start.xy, goals=scenario.goals_array,
                             margin_m=scenario.inflation_m + 0.025)
     assert narrower.path is None
