@@ -484,7 +484,7 @@ def _clear_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
     return points[cover.grid.clearance(points) >= cover.margin_m]
 
 
-_ACROSS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])  # where a door's width is sampled across the route (`_doors_along`)
+_ACROSS = np.linspace(-1.0, 1.0, 9)  # where a passage is sampled across the route (`_doors_along`)
 
 
 def _doors_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
@@ -492,10 +492,11 @@ def _doors_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
 
     At each of the route's points, 10 cm apart, that are less than the margin plus the tolerance from a
     blocked cell, the clearance (as the cover's distance transforms read it, within a cell) is sampled
-    across the route, out to the tolerance (and the route's shortfall below the margin) on either side:
-    where no sample is the margin plus the tolerance clear,
-    the passage is narrower than that on both sides (a door, not a corner), and its clearest sample, if
-    at least the margin clear, is where the cover may close it."""
+    across the route, out to the tolerance, two cells and the route's shortfall below the margin on
+    either side (a route along one wall finds the margin plus the tolerance on its other side): where no
+    sample is the margin plus the tolerance clear, the passage is narrower than that on both sides (a
+    door, not a corner), and its clearest sample, if it may be the margin clear (read within a cell of
+    it), is where the cover may close it."""
     points = _densify(coarse.points, 0.1)
     if len(points) < 2:
         return np.zeros((0, 2))
@@ -504,12 +505,12 @@ def _doors_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
     step = np.gradient(points, axis=0)
     normal = np.column_stack([-step[:, 1], step[:, 0]]) / np.maximum(np.linalg.norm(step, axis=1), 1e-12)[:, None]
     near = np.flatnonzero((clear > 0.0) & (clear < margin + tolerance))
-    reach = tolerance + np.maximum(margin - clear[near], 0.0)
+    reach = tolerance + 2.0 * cover.grid.resolution_m + np.maximum(margin - clear[near], 0.0)
     across = points[near, None, :] + (reach[:, None] * _ACROSS)[:, :, None] * normal[near, None, :]
     sampled = cover.distance_at(across.reshape(-1, 2)).reshape(len(near), len(_ACROSS))
     widest = np.argmax(sampled, axis=1)
     best = sampled[np.arange(len(near)), widest]
-    door = (best >= margin) & (best < margin + tolerance)
+    door = (best >= margin - cover.grid.resolution_m) & (best < margin + tolerance)
     return across[np.flatnonzero(door), widest[door]]
 
 

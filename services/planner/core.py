@@ -339,8 +339,7 @@ def plan_path(
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
         if attempt == 0 and route_keep_to is not None:
-            route = PathPlan("ok", joined_legs(legs),
-                             tuple(accumulate(len(leg) - 1 for leg in legs)))
+            route = PathPlan("ok", joined_legs(legs), tuple(accumulate(len(leg) - 1 for leg in legs)))
             if meets_others(route, None):
                 return route
         if attempt == 0 and heading_rad is not None:
