@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from cvxnav.exits import (EXIT_BAD_INPUT, EXIT_DIFFERS, EXIT_INTERRUPTED, EXIT_NO_PATH, EXIT_OK,
@@ -20,6 +21,21 @@ def _load(scenario: Path | None):
         raise CliError(str(error)) from None
 
 
+@contextmanager
+def _plan_progress() -> Iterator[Callable[[int, int], None]]:
+    """A spinner on a terminal's stderr while `cvxnav plan` works (a building's map may take several
+    plans, and a `no_path` seconds to prove), cleared when it is done; nothing where stderr is not one.
+    Yields what `plan_scenario` tells as each plan starts."""
+    from rich.console import Console
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    columns = (SpinnerColumn(), TextColumn("[bold]cvxnav plan[/bold]  {task.fields[doing]}"), TimeElapsedColumn())
+    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+        task = bar.add_task("plan", total=None, doing="reading the files")
+        yield lambda rounds, ellipses: bar.update(task, doing=f"plan {rounds} among {ellipses} ellipses")
+
+
 def _cmd_plan(args: argparse.Namespace) -> int:
     import time
 
@@ -30,9 +46,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from services.geometry import polyline_length
 
     map_readers()  # imported before the clock starts, as the planner is: `load` is reading the files
-    started = time.perf_counter()
-    scenario = _load(args.scenario)  # the scenario and any map it names: counted in the plan's time
-    plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - started))
+    with _plan_progress() as on_round:
+        started = time.perf_counter()
+        scenario = _load(args.scenario)  # the scenario and any map it names: counted in the plan's time
+        plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - started), on_round=on_round)
     plan.write(args.out)
     if plan.status != "ok":
         print(f"{scenario.name}: no path to the goals: {plan.reason} ({plan.timings_ms.total:.0f} ms) -> {args.out}")

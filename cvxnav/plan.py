@@ -9,7 +9,7 @@ planner (`services.maps.corridor`) fits the tiles of its cover that the query co
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
 
@@ -133,18 +133,22 @@ def plan_on_model(
     )
 
 
-def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings(), load_ms: float = 0.0) -> PlanFile:
+def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings(), load_ms: float = 0.0,
+                  on_round: Callable[[int, int], None] | None = None) -> PlanFile:
     """Plan once on the scenario's known map; the result is verified or reported as `no_path`.
 
     `load_ms`: how long reading the scenario and its map took, counted in the total (`cvxnav plan` times
     it), so that the total is the whole time from the files to the path. The planning runs in the
     scenario's local frame (`services.convert.LocalFrame`), the plan is moved back into the world's.
+    `on_round(round, ellipses)`: told as each plan on an occupancy grid starts (`plan_in_corridor`).
     """
     frame = LocalFrame.of(scenario)
-    return frame.to_world(_plan_local(frame.scenario_to_local(scenario), settings=settings, load_ms=load_ms))
+    return frame.to_world(_plan_local(frame.scenario_to_local(scenario), settings=settings, load_ms=load_ms,
+                                      on_round=on_round))
 
 
-def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -> PlanFile:
+def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
+                on_round: Callable[[int, int], None] | None) -> PlanFile:
     clock = _Clock()
     t0 = time.perf_counter()
     raw, _ = fit_known_obstacles(scenario, settings=settings, clock=clock)
@@ -167,6 +171,7 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float) -
                 meets_others=meets_others),
             settings=settings.corridor,
             timer=clock.stage,
+            on_round=on_round,
         )
         plan, smoothed, grown = found.plan, found.smoothed, found.grown
     else:

@@ -326,6 +326,7 @@ def plan_in_corridor(
     plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers], tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
+    on_round: Callable[[int, int], None] | None = None,
 ) -> CorridorPlan:
     """Plan start → goals (`waypoints`) among `fixed` ellipses (the scenario's other obstacles, grown) and
     the grid cover's, fitting only the tiles the plan comes near (see the module docstring).
@@ -337,7 +338,9 @@ def plan_in_corridor(
     meets_others)` plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length
     on the coarse grid (where the route search starts its bounds), where the route may go (the corridor,
     or None) and how to tell a plan that meets a piece it was not made among (which it hands back at
-    once: `services.planner.core.plan_within`); `timer(stage)` wraps the "corridor" and "fit" steps.
+    once: `services.planner.core.plan_within`); `timer(stage)` wraps the "corridor" and "fit" steps;
+    `on_round(round, ellipses)` is told as each plan starts (a progress display: a building's plan may
+    take several).
     """
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
@@ -386,6 +389,8 @@ def plan_in_corridor(
     corridor, opened, tightened = keep_to, False, False
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
+        if on_round is not None:
+            on_round(rounds, len(grown))
         # A plan that meets a piece it was not made among is handed back at once (no other route or margin
         # is tried on too few ellipses), and planned again with it.
         plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to, lambda p, s: bool(meets(p, s)))

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import pty
+import re
 import shutil
 import subprocess
 import sys
@@ -41,6 +44,39 @@ def test_plan_on_a_map_writes_a_verified_plan_2_file_timed_from_the_files(depot:
     done = cvxnav("plot", "plan.json", "--scenario", str(depot), "--png", "plan.png", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "plan.png").stat().st_size > 10_000
+
+
+def _on_a_terminal(args: list[str], *, cwd: Path, timeout_s: float = 300) -> tuple[int, str]:
+    """Run with stdout and stderr on a pseudo-terminal, as in a user's shell: (exit code, all it wrote)."""
+    controller, terminal = pty.openpty()
+    proc = subprocess.Popen(args, cwd=cwd, stdin=subprocess.DEVNULL, stdout=terminal, stderr=terminal,
+                            env={**os.environ, "TERM": "xterm-256color"})
+    os.close(terminal)
+    out = b""
+    while True:
+        try:
+            data = os.read(controller, 65536)
+        except OSError:  # EIO: the process closed its end
+            break
+        if not data:
+            break
+        out += data
+    os.close(controller)
+    return proc.wait(timeout=timeout_s), out.decode(errors="replace")
+
+
+def test_plan_on_a_terminal_shows_each_plan_while_it_works_and_a_pipe_gets_the_result_alone(depot: Path,
+                                                                                            tmp_path: Path):
+    """A building's plan may take several plans and a `no_path` seconds: on a terminal a spinner says which
+    plan runs among how many ellipses, and is cleared before the result line; piped, stderr stays empty."""
+    code, out = _on_a_terminal([sys.executable, "-m", "cvxnav", "plan", str(depot), "--out", "plan.json"],
+                               cwd=tmp_path)
+    assert code == 0, out
+    frames = [line.strip() for line in re.split(r"[\r\n]+", re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out))]
+    assert any(re.fullmatch(r"\S cvxnav plan  plan 1 among \d+ ellipses \d+:\d\d:\d\d", f) for f in frames), frames
+    assert [f for f in frames if f][-1].startswith("depot-1: path ")
+    done = cvxnav("plan", str(depot), "--out", "plan.json", cwd=tmp_path)
+    assert done.returncode == 0 and done.stderr == "" and done.stdout.count("\n") == 1
 
 
 def _break(depot: Path, how: str) -> str:
