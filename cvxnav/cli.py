@@ -26,12 +26,14 @@ def _plan_progress() -> Iterator[Callable[[int, int], None]]:
     """A spinner on a terminal's stderr while `cvxnav plan` works (a building's map may take several
     plans, and a `no_path` seconds to prove), cleared when it is done; nothing where stderr is not one.
     Yields what `plan_scenario` tells as each plan starts."""
+    if not sys.stderr.isatty():  # nothing to show: not even rich's import (some 40 ms)
+        yield lambda rounds, ellipses: None
+        return
     from rich.console import Console
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    console = Console(stderr=True)
     columns = (SpinnerColumn(), TextColumn("[bold]cvxnav plan[/bold]  {task.fields[doing]}"), TimeElapsedColumn())
-    with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("plan", total=None, doing="reading the files")
         yield lambda rounds, ellipses: bar.update(task, doing=f"plan {rounds} among {ellipses} ellipses")
 
