@@ -96,6 +96,24 @@ def test_a_door_wider_than_the_passage_is_open_and_the_plan_goes_through_it(spar
     assert scenario.clearance(path).min() >= MARGIN - 0.02
 
 
+def test_a_door_the_passage_test_misses_is_opened_after_a_plan_finds_no_route(monkeypatch: pytest.MonkeyPatch):
+    """The fallback for a closed gap the passage test does not take in (`_doors_along` made to find none):
+    the first plan, in the corridor, finds no route through the door 5 cm a side wider than the robot's
+    passage; the pieces holding the coarse route's margin-clear points are fitted again tighter and the
+    second plan, still in the corridor, goes through, clear of the whole cover."""
+    import services.maps.corridor as corridor
+
+    monkeypatch.setattr(corridor, "_doors_along", lambda cover, coarse: np.zeros((0, 2)))
+    scenario = _scenario(_room(2 * MARGIN + 0.1))
+    found, cover = _corridor_plan(scenario)
+    assert found.plan.status == "ok" and found.smoothed.verification.ok
+    assert found.kept_to_corridor and found.rounds == 2
+    path = found.smoothed.points
+    assert abs(path[np.argmin(np.abs(path[:, 0] - 6.0))][1] - 3.0) <= MARGIN + 0.05
+    stack = EllipseStack.of([p.grown for p in _every_piece(cover)])
+    assert np.min(stack.segment_levels(path[:-1], path[1:])) >= 1.0
+
+
 def test_a_start_whose_way_the_covers_excess_bulges_into_is_planned_from():
     """The car starts 0.53 m from the corner of the pillar at (3.0–3.2, 2.0–2.2), facing north, 0.44 m off
     its side: it must veer right by a centimetre or two within its first 0.3 m, which it can. The cover's
