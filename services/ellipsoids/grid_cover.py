@@ -210,10 +210,12 @@ class GridCover:
         are; a point truly within the margin of a blocked cell stays inside at every tolerance.
         """
         points = np.asarray(points, dtype=float).reshape(-1, 2)
+        if not len(points):
+            return False
         changed = False
         for tolerance in tolerances_m:
             pieces = [(tile, piece) for tile, kept in self.fitted.items() for piece in kept]
-            if not pieces or not len(points):
+            if not pieces:
                 break
             Ab = np.array([piece.grown_Ab for _, piece in pieces])  # (k, 2, 3)
             u = np.einsum("kij,pj->kpi", Ab[:, :, :2], points) + Ab[:, None, :, 2]
