@@ -3,7 +3,8 @@
 cluster → fit → grow → optimise → smooth, each stage the same pure code the distributed services run.
 On a known map each obstacle is one cluster whose solid is known (a convex cover of it), so the fit
 can measure its ellipses against the true shape. An occupancy grid is not fitted whole: the corridor
-planner (`services.maps.corridor`) fits the tiles of its cover that the query comes near.
+planner (`services.maps.corridor`) fits the tiles of its cover that the query comes near. Before it, a
+start facing walls nearer than the car can turn is proved to have no forward path (`services.maps.start`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from services.planner.core import (
     MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
 )
 from services.maps.corridor import CorridorSettings, plan_in_corridor
+from services.maps.start import hemmed_in
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed, smooth
@@ -161,19 +163,25 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if grids and len(goals):
         settings = replace(settings, refine=replace(settings.refine, window_radii=settings.map_window_radii))
-        cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
-        found = plan_in_corridor(
-            cover=cover,
-            waypoints=np.vstack([scenario.start.xy, goals]),
-            fixed=grown,
-            plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
-                scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths, route_keep_to=keep_to,
-                meets_others=meets_others),
-            settings=settings.corridor,
-            timer=clock.stage,
-            on_round=on_round,
-        )
-        plan, smoothed, grown = found.plan, found.smoothed, found.grown
+        with clock.stage("corridor"):
+            stuck = hemmed_in(grids[0].grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goal=goals[0],
+                              radius_m=1.0 / scenario.max_curvature, margin_m=scenario.inflation_m)
+        if stuck:
+            plan, smoothed = PathPlan("no_path", np.zeros((0, 2)), reason=stuck), None
+        else:
+            cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
+            found = plan_in_corridor(
+                cover=cover,
+                waypoints=np.vstack([scenario.start.xy, goals]),
+                fixed=grown,
+                plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
+                    scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths,
+                    route_keep_to=keep_to, meets_others=meets_others),
+                settings=settings.corridor,
+                timer=clock.stage,
+                on_round=on_round,
+            )
+            plan, smoothed, grown = found.plan, found.smoothed, found.grown
     else:
         plan, smoothed = plan_on_model(scenario, grown, settings=settings, clock=clock)
     ok = plan.status == "ok" and smoothed is not None and smoothed.verification.ok

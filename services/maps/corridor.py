@@ -122,11 +122,8 @@ class CoarseGrid:
         # Coarse cell (a, b) holds the map's cells from ((a − 1) k, (b − 1) k): a ring beyond the map.
         self.nr, self.nc = -(-rows // k) + 2, -(-cols // k) + 2
         blocked = self.grid.padded_blocked(slice(-k, (self.nr - 1) * k), slice(-k, (self.nc - 1) * k))
-        # A point x of a cell c is at most ‖x − c‖ + ‖c − q‖ − res/2 ≤ ‖c − q‖ + res/√2 − res/2 from the
-        # square of a blocked cell q (centres c, q): no point of c is r clear when some blocked centre is
-        # nearer than r + res/2 − res/√2 to c's. Those cells are closed (`_closed`), and a coarse cell is
-        # passable when one of its cells is open.
-        self.passable = _pooled(~_closed(blocked, (self.margin_m + res * (0.5 - 1.0 / _DIAGONAL)) / res), k)
+        # A coarse cell is passable when one of its cells is open.
+        self.passable = _pooled(open_cells(blocked, margin_m=self.margin_m, resolution_m=res), k)
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
         """(coarse cell of each node, the graph), built once."""
@@ -200,6 +197,14 @@ class CoarseGrid:
         at_waypoints = along[np.searchsorted(kept, ends)]
         return CoarseRoute("ok", points, corridor, length_m=total, cells=mask,
                            leg_lengths_m=tuple(np.diff(at_waypoints).tolist()))
+
+
+def open_cells(blocked: np.ndarray, *, margin_m: float, resolution_m: float) -> np.ndarray:
+    """The cells of which some point may be `margin_m` clear of every blocked square (beyond the mask
+    everything is blocked). A point x of a cell c is at most ‖x − c‖ + ‖c − q‖ − res/2 ≤ ‖c − q‖ + res/√2 −
+    res/2 from the square of a blocked cell q (centres c, q): no point of c is r clear when some blocked
+    centre is nearer than r + res/2 − res/√2 to c's. Those cells are closed, the others open."""
+    return ~_closed(blocked, (margin_m + resolution_m * (0.5 - 1.0 / _DIAGONAL)) / resolution_m)
 
 
 _DILATE_MAX_CELLS = 16  # beyond this radius a distance transform closes the cells faster than a dilation

@@ -5,6 +5,7 @@ distance to the blocked squares), drivable, and found fitting only part of the m
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -160,3 +161,18 @@ def test_a_passage_a_centimetre_wider_than_the_robots_is_opened_before_the_first
     assert narrower.path is None
     _assert_verified(scenario, plan_scenario(scenario))
     assert [plan.rounds for plan in found] == [1]
+
+
+def test_a_car_facing_a_wall_nearer_than_it_can_turn_is_told_at_once_that_no_forward_path_leaves(
+        shared_dir: Path, tmp_path: Path):
+    # A random ACES query: the car stands in a corridor facing its wall, 0.88 m turning radius. It took
+    # three plans and 4.2 s to end in no_path; the start's room proves it before any plan is made
+    # (`services.maps.start`). Turned a quarter along the corridor, the car has its way out.
+    start, goal = (23.209, -11.104), (0.059, -42.204)
+    rounds = []
+    facing = _aces(shared_dir, tmp_path, "aces-facing-wall", start=(*start, 2.783), goal=goal)
+    plan = plan_scenario(facing, on_round=lambda *told: rounds.append(told))
+    assert plan.status == "no_path" and plan.path == [] and rounds == []
+    assert "turning radius 0.88 m" in plan.reason and "never reverses" in plan.reason
+    turned = _aces(shared_dir, tmp_path, "aces-turned", start=(*start, 2.783 - 0.5 * math.pi), goal=goal)
+    _assert_verified(turned, plan_scenario(turned))
