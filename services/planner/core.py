@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length
+from services.planner.lattice import lead_in
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -28,6 +29,10 @@ _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel n
 _TURN_WIDER = 1.15
 _APPROACHES = 8  # directions the last goal is approached from, when its approach breaks the curvature bound
 _MIN_TURN_RAD = math.pi / 8  # turns smaller than this (either way round) get no turning lead-in
+# A lead-in searched over the car's turns (`lattice.lead_in`): its radius (a hall the single turns, wider,
+# do not fit in may fit it) and where it joins the route, in turning radii along it.
+_LEAD_WIDER = 1.05
+_LEAD_AHEAD = 3.0
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 
 
@@ -207,6 +212,12 @@ def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bo
                 and not len(intersected(lead, ellipses, level=level)))
 
 
+def _broken_near_start(points: FloatArray, kappa: float, within_m: float) -> bool:
+    """Whether the polyline breaks the curvature bound `kappa` within `within_m` of its start."""
+    broken = 1 + np.flatnonzero(curvature_broken(points, kappa))
+    return bool(len(broken)) and polyline_length(points[: broken[0] + 1]) <= within_m
+
+
 def _broken_near_end(points: FloatArray, kappa: float, within_m: float) -> bool:
     """Whether the polyline breaks the curvature bound `kappa` somewhere, and only within `within_m` of its end."""
     broken = 1 + np.flatnonzero(curvature_broken(points, kappa))
@@ -257,11 +268,14 @@ def plan_path(
     cannot meet the curvature bound on it, the route is searched again with a lead-in along the start
     heading and round ellipses enlarged by part of the turning radius — which leaves out passages too
     tight to turn in — and refined once more against the true ellipses; last, after a turning lead-in
-    onto the direction the first route leaves in, either way round (`_turns`). Where every route refined
-    clear breaks the bound only near the last goal (tucked beside a wall the route rounds tightly), the
-    goal is approached in a straight line from a turning radius away, from each direction that leaves
-    clear, the shortest such route first: the refinement is local, and may need to come in from
-    elsewhere than the route did (swinging wide of the corner and back). Once `late()` (the
+    onto the direction the first route leaves in, either way round (`_turns`). Where every one of those
+    fails within two turning radii of the start (too sharp there, or entering an ellipse), a lead-in is
+    searched over the car's own turns (`lattice.lead_in`: straight on past a pillar, then round it) and
+    that route refined. Where every route refined clear breaks the bound only near the last goal (tucked
+    beside a wall the route rounds tightly), the goal is approached in a straight line from a turning
+    radius away, from each direction that leaves clear, the shortest such route first: the refinement
+    is local, and may need to come in from elsewhere than the route did (swinging wide of the corner
+    and back). Once `late()` (the
     replan was called off), no further route is tried after one that refined clear. A plan that
     `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
     caller to plan again among more obstacles, never to publish: any route refined clear, and the
@@ -332,12 +346,15 @@ def plan_path(
             best_slack, best = result.curvature_slack, candidate
         return None, best_slack <= 1e-6 or late()
 
+    first_route = None
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = search(goals, lead=lead, extra_m=extra_m)
         if legs is None:
             if attempt == 0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
+        if attempt == 0:
+            first_route = legs[0]
         if attempt == 0 and route_keep_to is not None:
             route = PathPlan("ok", joined_legs(legs), tuple(accumulate(len(leg) - 1 for leg in legs)))
             if meets_others(route, None):
@@ -352,6 +369,20 @@ def plan_path(
         if enough:
             break
     else:
+        # Every lead-in of one turn failed where the car leaves the start: a search over its own turns.
+        if heading_rad is not None and first_route is not None and not late() and (
+                (best is None and entered_m is not None and entered_m <= 2.0 * radius)
+                or (best is not None and best.status == "ok" and _broken_near_start(best.points, 1.0 / radius,
+                                                                                    2.0 * radius))):
+            lead = lead_in(start=start, heading_rad=heading_rad, route=first_route, stack=stack,
+                           bounds_min=bounds_min, bounds_max=bounds_max, radius=_LEAD_WIDER * radius,
+                           level=settings.level, spacing_m=settings.spacing_m, ahead_m=_LEAD_AHEAD * radius)
+            if lead is not None and _clear(lead, ellipses, bounds_min, bounds_max, level=settings.level):
+                legs = search(goals, lead=lead)
+                if legs is not None:
+                    handed, _ = refined(legs)
+                    if handed is not None:
+                        return handed
         if (best is not None and best.status == "ok" and not late()
                 and _broken_near_end(best.points, 1.0 / radius, 4.0 * radius)):
             routes = []

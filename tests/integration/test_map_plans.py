@@ -176,3 +176,15 @@ def test_a_car_facing_a_wall_nearer_than_it_can_turn_is_told_at_once_that_no_for
     assert "turning radius 0.88 m" in plan.reason and "never reverses" in plan.reason
     turned = _aces(shared_dir, tmp_path, "aces-turned", start=(*start, 2.783 - 0.5 * math.pi), goal=goal)
     _assert_verified(turned, plan_scenario(turned))
+
+
+def test_a_car_facing_across_a_hall_from_its_route_loops_round_onto_it(shared_dir: Path, tmp_path: Path):
+    # A random ACES query: the car faces west across a hall (2.5 m of it the margin clear), its goal 14 m
+    # north. No lead-in of a single turn at 1.15 turning radii, the short way or the long way round, fits,
+    # and the plan ended in no_path. A lead-in searched over the car's own
+    # turns loops round in the hall onto the route: 21.3 m (BIT* with a Dubins car, turning at the car's
+    # radius where the refinement keeps 3 % within it, 19.5 m after 10 s).
+    scenario = _aces(shared_dir, tmp_path, "aces-across-hall", start=(-0.341, -30.754, -2.8265),
+                     goal=(1.759, -16.604))
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    assert polyline_length(path) <= 1.1 * 19.49
