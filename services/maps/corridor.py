@@ -8,13 +8,15 @@ what the query can use is built:
    and a blocked square's nearest point is at least half a cell nearer than its centre, so x is r clear
    only if the cell's centre is at least r + res/2 − res/√2 from every blocked cell's centre. The cells
    nearer than that are closed (one dilation of the blocked mask, over the whole map: a few ms on a
-   building's 1.4 M cells), and a coarse cell is passable when one of its cells is open. A path at
-   clearance r runs through passable coarse cells only, from each to one sharing an edge or a corner,
-   so the coarse graph keeps every cell and step a path can use: when it has no path, no path exists
-   at all, and the planner says so. Its answer is the shortest path and the corridor round it: every
-   coarse cell on a path at most `slack` longer. (The coarse cells are as fine as the map's own can
-   tell them: a door the robot does not fit is closed in the coarse grid too, and the corridor never
-   runs through it.)
+   building's 1.4 M cells). A path at clearance r runs through open cells only, from each to one
+   sharing an edge or a corner: a goal whose cell the start's does not reach so (a flood fill, under a
+   millisecond) has no path, and the planner says so. A coarse cell is passable when one of its cells
+   is open and reached, and a path runs through passable coarse cells only, from each to one sharing an
+   edge or a corner, so the coarse graph keeps every cell and step a path can use: when it has no path,
+   no path exists at all. Its answer is the shortest path and the corridor round it: every coarse cell
+   on a path at most `slack` longer. (The coarse cells are as fine as the map's own can tell them: a
+   door the robot does not fit is closed in the coarse grid too, and the corridor never runs through
+   it.)
 2. The cover (`services.ellipsoids.grid_cover`) of the tiles within `band_m` of the corridor, its pieces
    that hold the start or a goal fitted again tighter (`GridCover.tighten`), and those that hold the
    clearest points of the passages the coarse route runs through narrower than the margin plus the
@@ -106,11 +108,17 @@ class CoarseRoute:
 @dataclass(eq=False)
 class CoarseGrid:
     """The coarse cells a robot of clearance `margin_m` may be in, on a grid of `coarse_m` cells (the map
-    and a ring of blocked coarse cells round it), and the 16-connected shortest paths among them."""
+    and a ring of blocked coarse cells round it), and the 16-connected shortest paths among them.
+
+    With a `start`, only the map's open cells joined to the start's by open cells sharing an edge or a
+    corner count (a path at clearance r runs through open cells only, from each to such a neighbour):
+    pooled, the coarse cells could join two rooms through a gap a centimetre narrower than the robot's
+    passage, whose open cells on either side fall in shared coarse cells."""
 
     grid: OccupancyGrid
     margin_m: float
     coarse_m: float
+    start: FloatArray | None = None
     passable: np.ndarray = field(init=False)
     _graph: tuple[np.ndarray, sparse.csr_array] | None = field(init=False, default=None)
 
@@ -122,8 +130,23 @@ class CoarseGrid:
         # Coarse cell (a, b) holds the map's cells from ((a − 1) k, (b − 1) k): a ring beyond the map.
         self.nr, self.nc = -(-rows // k) + 2, -(-cols // k) + 2
         blocked = self.grid.padded_blocked(slice(-k, (self.nr - 1) * k), slice(-k, (self.nc - 1) * k))
-        # A coarse cell is passable when one of its cells is open.
-        self.passable = _pooled(open_cells(blocked, margin_m=self.margin_m, resolution_m=res), k)
+        self.open = open_cells(blocked, margin_m=self.margin_m, resolution_m=res)
+        self.reached = self.open
+        if self.start is not None:
+            (row, col), = self._cells(self.start)
+            self.reached = np.zeros_like(self.open)
+            if self.open[row, col]:
+                filled = self.open.view(np.uint8).copy()
+                cv2.floodFill(filled, None, (int(col), int(row)), 2, flags=8)
+                self.reached = filled == 2
+        # A coarse cell is passable when one of its cells is open (and reached).
+        self.passable = _pooled(self.reached, k)
+
+    def _cells(self, points: FloatArray) -> IntArray:
+        """(row, column) of each point's map cell in `open` (which counts the ring), clipped to it."""
+        i, j, _ = self.grid.cells_of(points)
+        cells = np.column_stack([j, i]) + self.k
+        return np.clip(cells, 0, np.array(self.open.shape) - 1)
 
     def _nodes(self) -> tuple[np.ndarray, sparse.csr_array]:
         """(coarse cell of each node, the graph), built once."""
@@ -143,10 +166,14 @@ class CoarseGrid:
         wa, wb = np.floor(g[:, 0]).astype(int), np.floor(g[:, 1]).astype(int)
         names = ["start"] + [f"goal {k + 1}" for k in range(len(waypoints) - 1)]
         none = np.zeros((0, 2))
-        for name, a, b in zip(names, wa, wb):
-            if not (0 <= a < self.nc and 0 <= b < self.nr) or not self.passable[b, a]:
+        for name, (row, col) in zip(names, self._cells(waypoints)):
+            if not self.open[row, col]:
                 return CoarseRoute("no_path", none, none, reason=f"the {name} is within the margin "
                                    f"({self.margin_m:.3f} m) of a blocked cell: no path")
+            if not self.reached[row, col]:
+                return CoarseRoute("no_path", none, none, reason=(
+                    f"no path to {name}: the map's cells ({self.grid.resolution_m:.2f} m) that may hold a point "
+                    f"at clearance {self.margin_m:.3f} m do not join it to the start, so none exists"))
         nodes, graph = self._nodes()
         targets = np.searchsorted(nodes, wb * self.nc + wa)
         # Only cells a near-shortest path can use matter: the search from each leg's start stops at twice
@@ -349,7 +376,7 @@ def plan_in_corridor(
     """
     total = cover.tiles_shape[0] * cover.tiles_shape[1]
     with timer("corridor"):
-        coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m)
+        coarse_grid = CoarseGrid(cover.grid, cover.margin_m, settings.coarse_m, start=waypoints[0])
         coarse = coarse_grid.route(waypoints, slack=settings.slack)
     if coarse.status != "ok":
         plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)

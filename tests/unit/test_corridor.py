@@ -169,10 +169,10 @@ def test_a_coarse_cell_is_passable_when_one_of_its_cells_may_hold_a_point_margin
     assert np.array_equal(coarse.passable, open_.reshape(coarse.nr, k, coarse.nc, k).any(axis=(1, 3)))
 
 
-def test_no_way_through_is_no_path_with_the_coarse_grids_reason():
+def test_no_way_through_is_no_path_with_its_reason():
     found, cover = _corridor_plan(_scenario(_room(None)))
     assert found.plan.status == "no_path"
-    assert "coarse grid" in found.plan.reason and "so none exists" in found.plan.reason
+    assert "do not join it to the start" in found.plan.reason and "so none exists" in found.plan.reason
     assert len(cover.fitted) == 0  # nothing fitted: the coarse search decided
 
 
