@@ -112,8 +112,8 @@ class CoarseGrid:
 
     With a `start`, only the map's open cells joined to the start's by open cells sharing an edge or a
     corner count (a path at clearance r runs through open cells only, from each to such a neighbour):
-    pooled, the coarse cells could join two rooms through a gap a centimetre narrower than the robot's
-    passage, whose open cells on either side fall in shared coarse cells."""
+    pooled, the coarse cells could join two rooms through a gap a few centimetres narrower than the
+    robot's passage, whose open cells on either side fall in neighbouring coarse cells."""
 
     grid: OccupancyGrid
     margin_m: float
