@@ -16,24 +16,26 @@ from services.maps.start import forward_exit, hemmed_in
 _RES = 0.05
 
 
-def _wall_ahead(gap_m: float, *, radius_m: float = 1.0, margin_m: float = 0.3) -> OccupancyGrid:
-    """A 10 × 10 m map, its right half solid from x = 5 + `gap_m` + margin: the car, at (5, 5) facing
-    +x, has `gap_m` of margin-clear floor ahead of it."""
+def _wall_ahead(gap_m: float, *, margin_m: float = 0.3, origin=(0.0, 0.0, 0.0)) -> OccupancyGrid:
+    """A 10 × 10 m map, its right half solid from x = 5 + `gap_m` + margin (in the map's frame): the car, at
+    (5, 5) facing +x there, has `gap_m` of margin-clear floor ahead of it."""
     mask = np.zeros((200, 200), dtype=bool)
     mask[:, int(round((5.0 + gap_m + margin_m) / _RES)) :] = True
-    return OccupancyGrid.from_mask(mask, resolution_m=_RES)
+    return OccupancyGrid.from_mask(mask, resolution_m=_RES, origin=origin)
 
 
 @pytest.mark.parametrize("gap_m, leaves", [(0.6, False), (0.8, False), (1.05, True), (2.0, True)])
-def test_a_car_facing_a_wall_nearer_than_its_turning_radius_cannot_leave_forward(gap_m, leaves):
+@pytest.mark.parametrize("origin", [(0.0, 0.0, 0.0), (4.2e5, 5.6e6, 0.7)])
+def test_a_car_facing_a_wall_nearer_than_its_turning_radius_cannot_leave_forward(gap_m, leaves, origin):
     """Radius 1 m: a straight wall 0.8 m ahead (less than √3/2 of the radius) is proved to stop every forward
-    path; 1.05 m ahead the car drives straight out of the radius."""
-    grid = _wall_ahead(gap_m)
-    start = np.array([5.0, 5.0])
-    assert forward_exit(grid, start=start, heading_rad=0.0, radius_m=1.0, margin_m=0.3) is leaves
+    path; 1.05 m ahead the car drives straight out of the radius. The same on a map in UTM metres, turned."""
+    grid = _wall_ahead(gap_m, origin=origin)
+    start = grid.to_world([5.0, 5.0])[0]
+    yaw = origin[2]
+    assert forward_exit(grid, start=start, heading_rad=yaw, radius_m=1.0, margin_m=0.3) is leaves
     # Along the wall, or facing away from it, the way is open.
     for heading in (math.pi / 2, -math.pi / 2, math.pi):
-        assert forward_exit(grid, start=start, heading_rad=heading, radius_m=1.0, margin_m=0.3)
+        assert forward_exit(grid, start=start, heading_rad=yaw + heading, radius_m=1.0, margin_m=0.3)
 
 
 def test_the_reason_names_the_radius_and_the_margin_and_is_given_only_where_proved():
