@@ -6,12 +6,13 @@ turn onto the route's direction the short way or the long way round), and the re
 the way round it is handed. In a room where no single turn fits the car may still get out: straight on
 past a pillar, then round it. This search finds such a way: best-first over the car's forward motions
 (Dubins' car on a lattice of motion primitives, as in hybrid A*: Dolgov, Thrun, Montemerlo & Diebel,
-2010), arcs of π/8, hard left, straight or hard right at a radius a little wider than
-the car's, each checked exactly against the ellipses (segment tests on its chords), ordered by the
-length driven plus the distance left to the route's point `ahead_m` on. It ends at that point, from a
-pose near it facing along the route, or facing it with a clear straight run in; the route search takes
-over from there. It is a heuristic, not complete: a lead-in where it finds one, None where it does not
-(within `max_nodes` poses, or on a route shorter than `ahead_m`).
+2010), arcs turning π/8 hard left or hard right at a radius a little wider than the car's, or as long
+straight on, each checked exactly against the ellipses (segment tests on its chords), ordered by the
+length driven plus the distance left to the route's point `ahead_m` on, within that point's distance
+plus two radii of the start. It ends at that point, from a pose near it facing along the route, or
+facing it with a clear straight run in; the route search takes over from there. It is a heuristic, not
+complete: a lead-in where it finds one, None where it does not (within `max_nodes` poses, or on a route
+shorter than `ahead_m`).
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
 def _joins(x: float, y: float, theta: float, target: FloatArray, facing: float, *, step: float,
            stack: EllipseStack, level: float) -> bool:
     """Whether the pose (x, y, θ) joins the route at `target`: there already (within a motion, facing along
-    the route), or facing it (within an eighth of a turn, itself within a quarter turn of the route's
+    the route within π/8), or facing it (within π/8, and the line to it within π/4 of the route's
     direction there) with a clear straight line to it."""
     gap = math.hypot(target[0] - x, target[1] - y)
     if gap <= step:
