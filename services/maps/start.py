@@ -52,12 +52,16 @@ def forward_exit(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, 
     left = np.array([-t[1], t[0]])
     half = res / math.sqrt(2.0)
     slack = half + _HEADING_SLACK * radius_m
-    # The cells within the radius of p, and round them the margin's reach, whose blocked cells close them.
+    # The cells within the radius of p, and round them the margin's reach, whose blocked cells close them;
+    # not beyond the map, where every cell is blocked, as `open_cells` takes everything beyond its mask.
+    pc, pr = np.floor(p / res).astype(int)
+    if not (0 <= pr < grid.shape[0] and 0 <= pc < grid.shape[1]):
+        return True  # a start beyond the map: not this test's to judge
     reach = int(math.ceil((radius_m + margin_m) / res)) + 2
-    c0, r0 = np.floor(p / res).astype(int) - reach
-    blocked = grid.padded_blocked(slice(r0, r0 + 2 * reach + 1), slice(c0, c0 + 2 * reach + 1))
-    open_ = open_cells(blocked, margin_m=margin_m, resolution_m=res)
-    rows, cols = np.mgrid[r0 : r0 + 2 * reach + 1, c0 : c0 + 2 * reach + 1]
+    r0, c0 = max(pr - reach, 0), max(pc - reach, 0)
+    r1, c1 = min(pr + reach + 1, grid.shape[0]), min(pc + reach + 1, grid.shape[1])
+    open_ = open_cells(grid.padded_blocked(slice(r0, r1), slice(c0, c1)), margin_m=margin_m, resolution_m=res)
+    rows, cols = np.mgrid[r0:r1, c0:c1]
     dx, dy = (cols + 0.5) * res - p[0], (rows + 0.5) * res - p[1]
     ahead, side = dx * t[0] + dy * t[1], dx * left[0] + dy * left[1]
     far = np.hypot(dx, dy)
@@ -65,7 +69,7 @@ def forward_exit(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, 
               & (np.hypot(ahead, side - radius_m) >= radius_m - slack)
               & (np.hypot(ahead, side + radius_m) >= radius_m - slack))
     labels, _ = ndimage.label(region, structure=np.ones((3, 3), dtype=bool))
-    own = labels[reach, reach]  # the cell holding p: the window is centred on it
+    own = labels[pr - r0, pc - c0]  # the cell holding p
     if own == 0:
         return True  # the start's own cell is closed: not this test's to judge
     return bool(np.any(far[labels == own] >= radius_m - half))

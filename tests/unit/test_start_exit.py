@@ -38,6 +38,16 @@ def test_a_car_facing_a_wall_nearer_than_its_turning_radius_cannot_leave_forward
         assert forward_exit(grid, start=start, heading_rad=yaw + heading, radius_m=1.0, margin_m=0.3)
 
 
+def test_a_car_turning_wider_than_the_map_is_judged_within_the_map():
+    """A turning radius of 10 km (the scenario allows a 100 m wheelbase steering 0.01 rad): the cells looked
+    at stop at the map's edges (a window of the radius would not fit in memory)."""
+    start = np.array([5.0, 5.0])
+    assert not forward_exit(_wall_ahead(0.6), start=start, heading_rad=0.0, radius_m=1e4, margin_m=0.3)
+    # Nor does any path come 10 km from the start on a 10 m map, whichever way the car faces.
+    for heading in (math.pi, math.pi / 2):
+        assert not forward_exit(_wall_ahead(2.0), start=start, heading_rad=heading, radius_m=1e4, margin_m=0.3)
+
+
 def test_the_reason_names_the_radius_and_the_margin_and_is_given_only_where_proved():
     grid = _wall_ahead(0.6)
     start, behind, ahead = np.array([5.0, 5.0]), np.array([1.0, 5.0]), np.array([5.5, 5.0])
