@@ -346,21 +346,20 @@ def plan_path(
             best_slack, best = result.curvature_slack, candidate
         return None, best_slack <= 1e-6 or late()
 
-    first_route = None
+    first_leg = None  # the first route's, where the car has a heading
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = search(goals, lead=lead, extra_m=extra_m)
         if legs is None:
             if attempt == 0:
                 return PathPlan("no_path", np.zeros((0, 2)), reason="every route to the goals is blocked")
             continue
-        if attempt == 0:
-            first_route = legs[0]
         if attempt == 0 and route_keep_to is not None:
             route = PathPlan("ok", joined_legs(legs), tuple(accumulate(len(leg) - 1 for leg in legs)))
             if meets_others(route, None):
                 return route
         if attempt == 0 and heading_rad is not None:
-            tries += [(turn, 0.0) for turn in _turns(start, heading_rad, legs[0], radius=_TURN_WIDER * radius,
+            first_leg = legs[0]
+            tries += [(turn, 0.0) for turn in _turns(start, heading_rad, first_leg, radius=_TURN_WIDER * radius,
                                                      step_m=settings.spacing_m)
                       if _clear(turn, ellipses, bounds_min, bounds_max, level=settings.level)]
         handed, enough = refined(legs)
@@ -370,11 +369,11 @@ def plan_path(
             break
     else:
         # Every lead-in of one turn failed where the car leaves the start: a search over its own turns.
-        if heading_rad is not None and first_route is not None and not late() and (
-                (best is None and entered_m is not None and entered_m <= 2.0 * radius)
-                or (best is not None and best.status == "ok" and _broken_near_start(best.points, 1.0 / radius,
-                                                                                    2.0 * radius))):
-            lead = lead_in(start=start, heading_rad=heading_rad, route=first_route, stack=stack,
+        failed_at_start = ((best is None and entered_m is not None and entered_m <= 2.0 * radius)
+                           or (best is not None and best.status == "ok"
+                               and _broken_near_start(best.points, 1.0 / radius, 2.0 * radius)))
+        if first_leg is not None and failed_at_start and not late():
+            lead = lead_in(start=start, heading_rad=heading_rad, route=first_leg, stack=stack,
                            bounds_min=bounds_min, bounds_max=bounds_max, radius=_LEAD_WIDER * radius,
                            level=settings.level, spacing_m=settings.spacing_m, ahead_m=_LEAD_AHEAD * radius)
             if lead is not None and _clear(lead, ellipses, bounds_min, bounds_max, level=settings.level):
