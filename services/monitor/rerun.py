@@ -29,6 +29,7 @@ import shutil
 import socket
 import sysconfig
 import time
+import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +49,9 @@ APPLICATION_ID = "cvxnav"
 TIMELINE = "sim_time"
 TRAIL_MAX_POINTS = 5_000
 VIEWER_PORT = 9876  # where a spawned viewer listens (rerun's default; a viewer already there is reused)
+# Each stream's flush at stop, at most: well within the grace the supervisor gives a stage to stop
+# (`cvxnav.supervisor`'s 5 s) before it kills it mid-file.
+_FLUSH_TIMEOUT_S = 2.0
 
 
 def disable_rerun_analytics() -> None:
@@ -72,18 +76,46 @@ class RerunTargets:
         return self.record_path is not None or self.spawn_viewer or self.viewer_url is not None
 
 
-def open_recording(*, targets: RerunTargets, recording_id: str | None = None):
-    """A rerun recording stream sending to every target, with the pipeline layout as its blueprint."""
+class Recording:
+    """One recording sent to each target on a rerun stream of its own (the same recording id): a stream's
+    sinks are written in turn, so a viewer that accepts the connection and then reads nothing (a spawned
+    one that cannot open its window may linger so) would hold up the file's data with its own, and a
+    file flushed late is cut short when the stage is stopped. The file is flushed first at the end."""
+
+    def __init__(self, streams: list) -> None:
+        self.streams = streams  # the file's first, where there is one
+
+    def set_time(self, timeline: str, **time) -> None:
+        for stream in self.streams:
+            stream.set_time(timeline, **time)
+
+    def log(self, entity: str, archetype, *, static: bool = False) -> None:
+        for stream in self.streams:
+            stream.log(entity, archetype, static=static)
+
+    def close(self, *, timeout_s: float) -> None:
+        """Flush each stream (at most `timeout_s` each) and disconnect it; a viewer that went away is
+        a warning, the other targets keep their data."""
+        for stream in self.streams:
+            try:
+                stream.flush(timeout_sec=timeout_s)
+            except RuntimeError as error:
+                logger.warning("monitor: %s", str(error).splitlines()[0])
+            stream.disconnect()
+
+
+def open_recording(*, targets: RerunTargets, recording_id: str | None = None) -> Recording:
+    """The recording sent to every target, with the pipeline layout as its blueprint."""
     disable_rerun_analytics()
     import rerun as rr
 
-    recording = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    recording_id = recording_id or uuid.uuid4().hex
     sinks = []
     if targets.record_path is not None:
         sinks.append(rr.FileSink(str(targets.record_path)))
     if targets.spawn_viewer:
         try:
-            rr.spawn(port=VIEWER_PORT, connect=False, executable_path=viewer_executable(), recording=recording)
+            rr.spawn(port=VIEWER_PORT, connect=False, executable_path=viewer_executable())
             reason = "" if viewer_listening() else "it exited (no display?)"
         except RuntimeError as error:  # no `rerun` executable
             reason = str(error).splitlines()[0]
@@ -95,9 +127,12 @@ def open_recording(*, targets: RerunTargets, recording_id: str | None = None):
             logger.warning("monitor: the rerun viewer did not start: %s; sending to the other targets only", reason)
     if targets.viewer_url is not None:
         sinks.append(rr.GrpcSink(targets.viewer_url))
-    if sinks:
-        recording.set_sinks(*sinks, default_blueprint=blueprint())
-    return recording
+    streams = []
+    for sink in sinks:
+        stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        stream.set_sinks(sink, default_blueprint=blueprint())
+        streams.append(stream)
+    return Recording(streams)
 
 
 def viewer_listening(*, timeout_s: float = 1.0) -> bool:
@@ -258,11 +293,7 @@ class MonitorCore:
         return []
 
     def stop(self, *, now_s: float) -> Outputs:
-        try:
-            self.recording.flush(timeout_sec=10.0)
-        except RuntimeError as error:  # a viewer that never came up or went away; the other sinks have their data
-            logger.warning("monitor: %s", str(error).splitlines()[0])
-        self.recording.disconnect()
+        self.recording.close(timeout_s=_FLUSH_TIMEOUT_S)
         logger.info("monitor logged %d messages", sum(self.logged.values()))
         return []
 
