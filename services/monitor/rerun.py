@@ -77,10 +77,11 @@ class RerunTargets:
 
 
 class Recording:
-    """One recording sent to each target on a rerun stream of its own (the same recording id): a stream's
-    sinks are written in turn, so a viewer that accepts the connection and then reads nothing (a spawned
-    one that cannot open its window may linger so) would hold up the file's data with its own, and a
-    file flushed late is cut short when the stage is stopped. The file is flushed first at the end."""
+    """One recording sent to each target on a rerun stream of its own (the same recording id). A stream
+    is flushed and closed as a whole: on one stream with the file, a viewer that accepts the connection
+    and then reads nothing (a spawned one that cannot open its window may linger so) keeps the file's
+    flush waiting until the stage is killed, and the file is left without its footer. The file's stream
+    is closed first."""
 
     def __init__(self, streams: list) -> None:
         self.streams = streams  # the file's first, where there is one
