@@ -50,6 +50,11 @@ class Progress:
         self.pass_started_s = time.monotonic()
 
 
+def _socket_address(address: str) -> str:
+    """A ``NOTIFY_SOCKET`` value as a socket address: ``@name`` (Linux's abstract namespace) leads with NUL."""
+    return "\0" + address[1:] if address.startswith("@") else address
+
+
 @dataclass(frozen=True)
 class Watchdog:
     """Where this process sends its keep-alives, and the interval within which one must arrive."""
@@ -77,7 +82,7 @@ class Watchdog:
             return None
         if interval_s <= 0.0:
             return None
-        return cls(address="\0" + address[1:] if address.startswith("@") else address, interval_s=interval_s)
+        return cls(address=_socket_address(address), interval_s=interval_s)
 
 
 def keep_alive(*, watchdog: Watchdog, progress: Progress, stall_limit_s: float,
@@ -131,7 +136,7 @@ class NotifySocket:
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
             # OSError for a path longer than sun_path (108 bytes), or a name already bound.
-            self._sock.bind("\0" + address[1:] if address.startswith("@") else address)
+            self._sock.bind(_socket_address(address))
         except OSError:
             self._sock.close()
             raise
