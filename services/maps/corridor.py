@@ -134,11 +134,7 @@ class CoarseGrid:
         self.reached = self.open
         if self.start is not None:
             (row, col), = self._cells(self.start)
-            self.reached = np.zeros_like(self.open)
-            if self.open[row, col]:
-                filled = self.open.view(np.uint8).copy()
-                cv2.floodFill(filled, None, (int(col), int(row)), 2, flags=8)
-                self.reached = filled == 2
+            self.reached = reached_from(self.open, row, col)
         # A coarse cell is passable when one of its cells is open (and reached).
         self.passable = _pooled(self.reached, k)
 
@@ -232,6 +228,16 @@ def open_cells(blocked: np.ndarray, *, margin_m: float, resolution_m: float) -> 
     res/2 from the square of a blocked cell q (centres c, q): no point of c is r clear when some blocked
     centre is nearer than r + res/2 − res/√2 to c's. Those cells are closed, the others open."""
     return ~_closed(blocked, (margin_m + resolution_m * (0.5 - 1.0 / _DIAGONAL)) / resolution_m)
+
+
+def reached_from(mask: np.ndarray, row: int, col: int) -> np.ndarray:
+    """The cells of a boolean mask joined to cell (row, col) by cells of it sharing an edge or a corner
+    (none where that cell is not in it): OpenCV's flood fill, under a millisecond on ACES's open cells."""
+    if not mask[row, col]:
+        return np.zeros_like(mask)
+    filled = mask.view(np.uint8).copy()
+    cv2.floodFill(filled, None, (int(col), int(row)), 2, flags=8)
+    return filled == 2
 
 
 _DILATE_MAX_CELLS = 16  # beyond this radius a distance transform closes the cells faster than a dilation

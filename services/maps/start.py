@@ -32,11 +32,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from schemas.occupancy import OccupancyGrid
 from services.geometry import FloatArray
-from services.maps.corridor import open_cells
+from services.maps.corridor import open_cells, reached_from
 
 _HEADING_SLACK = 2e-3  # radians: a verified curve leaves the start within 1e-3 of the heading
 
@@ -68,11 +67,9 @@ def forward_exit(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, 
     region = (open_ & (far < radius_m + half) & (ahead >= -slack)
               & (np.hypot(ahead, side - radius_m) >= radius_m - slack)
               & (np.hypot(ahead, side + radius_m) >= radius_m - slack))
-    labels, _ = ndimage.label(region, structure=np.ones((3, 3), dtype=bool))
-    own = labels[pr - r0, pc - c0]  # the cell holding p
-    if own == 0:
+    if not region[pr - r0, pc - c0]:
         return True  # the start's own cell is closed: not this test's to judge
-    return bool(np.any(far[labels == own] >= radius_m - half))
+    return bool(np.any(far[reached_from(region, pr - r0, pc - c0)] >= radius_m - half))
 
 
 def hemmed_in(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float | None, goal: FloatArray,
