@@ -1,4 +1,4 @@
-"""`services.planner.lattice.lead_in`: a lead-in over the car's own turns onto a route it faces away from."""
+"""`services.planner.lattice`: a lead-in over the car's turns onto a route it faces away from; a search to a point."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 
 from services.drive.controller import menger_curvature
 from services.geometry import Ellipse, EllipseStack, polyline_length
-from services.planner.lattice import lead_in
+from services.planner.lattice import lead_in, search
 
 _LO, _HI = np.array([-20.0, -20.0]), np.array([20.0, 20.0])
 
@@ -48,3 +48,24 @@ def test_no_lead_in_where_the_car_is_boxed_in():
            Ellipse.from_axes(center=(0.0, 1.6), semi_axes=(3.0, 0.5)),
            Ellipse.from_axes(center=(0.0, -1.6), semi_axes=(3.0, 0.5))]
     assert _lead(box) is None
+
+
+def test_a_search_to_a_point_behind_the_car_loops_round_to_it_any_way_round():
+    """No direction to arrive in: the car at the origin facing east reaches a point 0.5 m behind it."""
+    def clear(starts, ends):
+        return np.ones(len(starts), dtype=bool)
+
+    path = search(start=np.zeros(2), heading_rad=0.0, target=np.array([-0.5, 0.0]), facing=None, clear=clear,
+                  bounds_min=_LO, bounds_max=_HI, radius=1.0, spacing_m=0.1, reach_m=math.inf, max_nodes=3000)
+    assert path is not None and np.allclose(path[-1], [-0.5, 0.0])
+    assert path[1, 0] > 0.0 and abs(path[1, 1]) < 0.01  # off along the heading
+    assert np.max(menger_curvature(path[:-1])) <= 1.0 + 1e-9  # arcs of radius 1 m and straight runs
+    assert polyline_length(path) < 2.0 * math.pi * 1.0 + 1.0  # about one loop of the turning circle, not a wander
+
+
+def test_a_search_stays_within_its_reach():
+    def clear(starts, ends):
+        return np.ones(len(starts), dtype=bool)
+
+    assert search(start=np.zeros(2), heading_rad=0.0, target=np.array([-0.5, 0.0]), facing=None, clear=clear,
+                  bounds_min=_LO, bounds_max=_HI, radius=1.0, spacing_m=0.1, reach_m=1.0, max_nodes=3000) is None
