@@ -4,7 +4,8 @@ cluster → fit → grow → optimise → smooth, each stage the same pure code 
 On a known map each obstacle is one cluster whose solid is known (a convex cover of it), so the fit
 can measure its ellipses against the true shape. An occupancy grid is not fitted whole: the corridor
 planner (`services.maps.corridor`) fits the tiles of its cover that the query comes near. Before it, a
-start facing walls nearer than the car can turn is proved to have no forward path (`services.maps.start`).
+start facing walls nearer than the car can turn is proved to have no forward path (`services.maps.start`);
+where its plans fail, it refines a path the car can drive searched on the map (`services.maps.seed`).
 """
 
 from __future__ import annotations
@@ -26,10 +27,16 @@ from services.planner.core import (
     MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
 )
 from services.maps.corridor import CorridorSettings, plan_in_corridor
+from services.maps.seed import drivable_path
 from services.maps.start import hemmed_in
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed, smooth
+
+
+# A path searched on the map over the car's turns where the planner's routes fail (`services.maps.seed`):
+# its arcs this much wider than the radius the refinement plans to, as the lead-ins it searches.
+_SEED_WIDER = 1.05
 
 
 @dataclass(frozen=True)
@@ -93,15 +100,15 @@ def fit_known_obstacles(
 def plan_on_model(
     scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
     route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
-    meets_others: MeetsOthers = meets_none,
+    meets_others: MeetsOthers = meets_none, route_seed: np.ndarray | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
     on the model every planner is handed. Goals reached at the start, or with the goal before them
     (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
     `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
-    route may go (`services.planner.core.plan_path`); `meets_others`: whether a plan meets an obstacle
-    it was not made among (`services.planner.core.plan_within`)."""
+    route may go, and a drivable path to the first goal to refine instead (`services.planner.core.plan_path`);
+    `meets_others`: whether a plan meets an obstacle it was not made among (`services.planner.core.plan_within`)."""
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if not len(goals):
         return stay_at_start(scenario.start.xy, grown)
@@ -116,6 +123,7 @@ def plan_on_model(
         route_estimate_m=route_estimate_m,
         route_keep_to=route_keep_to,
         meets_others=meets_others,
+        route_seed=route_seed,
     )
     return plan_until_verified(
         **problem,
@@ -174,9 +182,14 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
                 cover=cover,
                 waypoints=np.vstack([scenario.start.xy, goals]),
                 fixed=grown,
-                plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
+                plan_fn=lambda ellipses, lengths, keep_to, meets_others, seed: plan_on_model(
                     scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths,
-                    route_keep_to=keep_to, meets_others=meets_others),
+                    route_keep_to=keep_to, meets_others=meets_others, route_seed=seed),
+                seed_fn=lambda: drivable_path(
+                    grids[0].grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goal=goals[0],
+                    radius_m=_SEED_WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
+                    margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
+                    bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max)),
                 settings=settings.corridor,
                 timer=clock.stage,
                 on_round=on_round,

@@ -47,6 +47,12 @@ what the query can use is built:
    cover. After a curve that failed among all it meets, once, the pieces its path ran within their own
    tolerance of are fitted again tighter: a start facing along a wall a few centimetres beyond the
    margin may find no room to turn at the car's curvature in the cover's excess.
+5. Where the plans still end without a verified curve, a path the car can drive to the first goal is
+   searched on the map itself, over the car's own turns (`services.maps.seed`), and the plans go on from
+   it, refined as the route: the tangent graph's routes are blind to the heading and the refinement is
+   local, so a goal a little behind the car, a corner too tight for its turning radius or a way out on
+   the other side of a pillar left no plan where the car could drive. When that too ends unverified,
+   the answer (and its reason) is the plan before it.
 """
 
 from __future__ import annotations
@@ -361,10 +367,12 @@ def plan_in_corridor(
     cover: GridCover,
     waypoints: FloatArray,
     fixed: list[Ellipse],
-    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers], tuple[PathPlan, Smoothed | None]],
+    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers, FloatArray | None],
+                      tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
     on_round: Callable[[int, int], None] | None = None,
+    seed_fn: Callable[[], FloatArray | None] | None = None,
 ) -> CorridorPlan:
     """Plan start → goals (`waypoints`) among `fixed` ellipses (the scenario's other obstacles, grown) and
     the grid cover's, fitting only the tiles the plan comes near (see the module docstring).
@@ -425,13 +433,15 @@ def plan_in_corridor(
 
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     corridor, opened, tightened = keep_to, False, False
+    seed: FloatArray | None = None
+    unseeded: tuple[PathPlan, Smoothed | None, list[Ellipse]] | None = None  # the answer before the seed
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
         if on_round is not None:
             on_round(rounds, len(grown))
         # A plan that meets a piece it was not made among is handed back at once (no other route or margin
         # is tried on too few ellipses), and planned again with it.
-        plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to, lambda p, s: bool(meets(p, s)))
+        plan, smoothed = plan_fn(grown, coarse.leg_lengths_m, keep_to, lambda p, s: bool(meets(p, s)), seed)
         if plan.status == "ok":
             # Held against the rest of the cover whether its curve verified or not: a plan that failed
             # among too few ellipses (a route through a wall mass no tile of which was fitted, with a turn
@@ -465,12 +475,27 @@ def plan_in_corridor(
                     keep_to = corridor
                     continue
         if keep_to is None:
-            break  # no route among some of the ellipses (so none among all), or a curve failed among all it meets
+            # No route among some of the ellipses (so none among all), or a curve failed among all it meets:
+            # once, a path the car can drive, searched on the map, and the plans go on from it.
+            if unseeded is None and seed_fn is not None:
+                with timer("corridor"):
+                    seed = seed_fn()
+                if seed is not None:
+                    unseeded = plan, smoothed, grown
+                    with timer("fit"):
+                        tiles.update(cover.tiles_near(_densify(seed, 0.1), cover.reach_m + 0.1))
+                        cover.tighten(seed, near=True)
+                        fitted = _pieces(cover, tiles, waypoints)
+                        used = _renewed(used, fitted, seed, settings.band_m)
+                    continue
+            break
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it
     else:
         if plan.status == "ok" and meets(plan, smoothed):  # never a path through walls it was not planned among
             plan, smoothed = PathPlan("no_path", np.zeros((0, 2)), reason=(
                 f"every one of {settings.max_rounds} plans met walls of the map it was not made among")), None
+    if unseeded is not None and not (plan.status == "ok" and smoothed is not None and smoothed.verification.ok):
+        plan, smoothed, grown = unseeded
     return CorridorPlan(plan, smoothed, grown, coarse, len(cover.fitted), total, rounds, keep_to is not None)
 
 

@@ -34,6 +34,11 @@ _MIN_TURN_RAD = math.pi / 8  # turns smaller than this (either way round) get no
 _LEAD_WIDER = 1.05
 _LEAD_AHEAD = 3.0
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
+# A drivable path handed in (`route_seed`) is refined whole, its steps shrinking by at most 1 % an
+# iteration: its arcs already turn at little more than the planning radius, and under the default 5 %
+# step floor the first subproblem's curvature budget, κ (0.95 h)², is stricter than they are, so that each
+# iteration shortened the steps of its loops and ended with their curvature unmet.
+_SEED_REFINE = dict(window_radii=None, step_shrink=0.99)
 
 
 @dataclass(frozen=True)
@@ -257,11 +262,15 @@ def plan_path(
     route_keep_to: KeepTo | None = None,
     late: Callable[[], bool] = lambda: False,
     meets_others: MeetsOthers = meets_none,
+    route_seed: FloatArray | None = None,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
 
     `route_estimate_m`: each leg's length as a coarser search found it, where the route search starts
-    its bounds; `route_keep_to`: where the route may go, a corridor (`route.shortest_route`).
+    its bounds; `route_keep_to`: where the route may go, a corridor (`route.shortest_route`);
+    `route_seed`: a path the car can drive from the start to the first goal, found elsewhere where the
+    routes below failed (`services.maps.seed`): it is refined as the route (on from the goal as the route
+    search finds it), and nothing else is tried.
 
     The route search ignores curvature, so its shortest route can demand a turn the car cannot make
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
@@ -325,13 +334,13 @@ def plan_path(
     best_slack = np.inf
     entered_m = None
 
-    def refined(legs: list[FloatArray]) -> tuple[PathPlan | None, bool]:
-        """The route refined, kept as the best if it meets the bound better: (a plan to return at once, one
-        that meets others, or None; whether to try no further route: one met the bound, or it is late)."""
+    def refined(legs: list[FloatArray], *, how: RefineSettings = settings) -> tuple[PathPlan | None, bool]:
+        """The route refined (with `how`), kept as the best if it meets the bound better: (a plan to return at
+        once, one that meets others, or None; whether to try no further route: one met the bound, or it is late)."""
         nonlocal best, best_slack, entered_m
         try:
             result = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
-                            max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
+                            max_curvature=max_curvature, heading_rad=heading_rad, settings=how)
         except SolverFailure as failure:
             if best is None:
                 best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))
@@ -346,6 +355,20 @@ def plan_path(
             best_slack, best = result.curvature_slack, candidate
         return None, best_slack <= 1e-6 or late()
 
+    def verdict() -> PathPlan:
+        """The best plan refined, or why there is none."""
+        if best is None:
+            return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses",
+                            entered_m=entered_m)
+        return best
+
+    if route_seed is not None:
+        legs = search(goals, lead=route_seed[:-1])  # its last pose on to the goal, as the route search joins it
+        if legs is not None:
+            handed, _ = refined(legs, how=replace(settings, **_SEED_REFINE))
+            if handed is not None:
+                return handed
+        return verdict()
     first_leg = None  # the first route's, where the car has a heading
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = search(goals, lead=lead, extra_m=extra_m)
@@ -396,10 +419,7 @@ def plan_path(
                     return handed
                 if enough:
                     break
-    if best is None:
-        return PathPlan("no_path", np.zeros((0, 2)), reason="no refined route stays clear of the ellipses",
-                        entered_m=entered_m)
-    return best
+    return verdict()
 
 
 @dataclass(frozen=True)

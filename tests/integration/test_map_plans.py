@@ -204,3 +204,20 @@ def test_a_gap_narrower_than_the_robots_passage_is_no_path_before_any_plan(share
     grid = scenario.obstacles[0].grid
     waypoints = np.vstack([scenario.start.xy, scenario.goals_array])
     assert CoarseGrid(grid, scenario.inflation_m, 0.2).route(waypoints, slack=0.03).status == "ok"  # pooled
+
+
+def test_a_goal_close_behind_a_wide_turning_car_is_reached_round_a_loop(shared_dir: Path, tmp_path: Path):
+    # A random depot query for a car that turns at 2.3 m: its goal 1.45 m behind it and to its left, in the
+    # depot's open hall. The route runs straight back to the goal; every lead-in and refinement of it
+    # broke the curvature bound, and the plan ended in no_path. A path searched over the car's turns on
+    # the map itself, to the goal (any way round), is refined instead: 15.4 m (BIT* with a Dubins car,
+    # 13.2 m after 20 s).
+    robot = {"width": 0.486, "length": 0.757, "wheelbase": 0.966, "safety_distance": 0.29, "max_speed": 1.0,
+             "max_steering_angle": 0.3975, "max_steering_rate": 0.5}
+    doc = _scenario_doc("depot-loop", map_path=str(shared_dir / "maps" / "depot.yaml"),
+                        start=(12.13, 4.421, 0.5307), goal=(10.739, 4.811), description="", robot=robot)
+    (tmp_path / "depot-loop.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "depot-loop.json")
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    behind = np.linalg.norm(scenario.goals_array[0] - scenario.start.xy)
+    assert polyline_length(path) <= 2.0 * math.pi / scenario.max_curvature + 2.0 * behind  # a loop, not a tour

@@ -55,7 +55,7 @@ def _corridor_plan(scenario: Scenario, *, tolerance_m: float = 0.1, **settings):
     grid = scenario.obstacles[0].grid
     cover = GridCover(grid, margin_m=MARGIN, settings=GridCoverSettings(tolerance_m=tolerance_m))
     found = plan_in_corridor(cover=cover, waypoints=np.vstack([scenario.start.xy, scenario.goals_array]), fixed=[],
-                             plan_fn=lambda ellipses, lengths, keep_to, meets_others: plan_on_model(
+                             plan_fn=lambda ellipses, lengths, keep_to, meets_others, seed: plan_on_model(
                                  scenario, ellipses, route_estimate_m=lengths, route_keep_to=keep_to,
                                  meets_others=meets_others),
                              settings=CorridorSettings(**settings))
