@@ -35,9 +35,9 @@ _LEAD_WIDER = 1.05
 _LEAD_AHEAD = 3.0
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 # A drivable path handed in (`route_seed`) is refined whole, its steps shrinking by at most 1 % an
-# iteration: its arcs already turn at little more than the planning radius, and under the default 5 %
-# step floor the first subproblem's curvature budget, κ (0.95 h)², is stricter than they are, so that each
-# iteration shortened the steps of its loops and ended with their curvature unmet.
+# iteration: its arcs are only 5 % wider than the planning radius, and under the default 5 % step floor
+# the first subproblem's curvature budget, κ (0.95 h)², is stricter than they are (measured: each
+# iteration shortened the steps of r01's loop, docs/maps.md stop 44, and it ended with its curvature unmet).
 _SEED_REFINE = dict(window_radii=None, step_shrink=0.99)
 
 
