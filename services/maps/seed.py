@@ -4,10 +4,12 @@ its own routes fail.
 The planner's route search is blind to the heading, and its refinement is local: where the shortest
 route asks for a turn the car cannot make (a goal a little behind it, a corner too tight for its
 turning radius, a car set down across a corridor), it tries the turning lead-ins it knows and, failing,
-says `no_path` — while the car could have driven there, round a wider loop or turning earlier. This search looks for such a way over the car's own turns
-(`services.planner.lattice.search`: arcs a little wider than its turning radius and straight runs), on
-the grid's exact clearance (`OccupancyGrid.clearance`), so that it sees every wall of the map, not only
-those whose cover was fitted. It is a heuristic, not a proof: a path where it finds one.
+says `no_path` — while the car could have driven there, round a wider loop or turning earlier. This
+search looks for such a way over the car's own turns (`services.planner.lattice.search`: arcs a little
+wider than its turning radius and straight runs), on the grid's exact clearance
+(`OccupancyGrid.clearance`), so that it sees every wall of the map, not only those whose cover was
+fitted. It is a heuristic, not a proof: a path where it finds one, to the first goal only (arriving any
+way round: with goals after it, the turn onward there may still be more than the car can make).
 
 A chord is clear when points at most `_SAMPLE_M` apart along it are at least the margin plus half that
 from every blocked cell: every point of the chord is within half of it of one of them, and the
