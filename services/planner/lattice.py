@@ -10,7 +10,8 @@ past a pillar, then round it. `search` finds such a way: best-first over the car
 2010), arcs turning π/8 hard left or hard right at a radius a little wider than the car's, or as long
 straight on, each checked by the caller's test on its chords, ordered by the length driven plus the
 distance left to the target, within `reach_m` of the start. It ends at the target, from a pose near it
-(facing along a given direction, or any way), or facing it with a clear straight run in. It is a
+facing along a given direction or facing it with a clear straight run in; or, arriving any way round,
+from a pose that turns at the same radius until it faces the target and runs straight in. It is a
 heuristic, not complete: a path where it finds one, None where it does not (within `max_nodes` poses).
 """
 
@@ -26,6 +27,7 @@ from services.geometry import EllipseStack, FloatArray
 
 _TURN_RAD = math.pi / 8  # each motion turns by this much (or not at all)
 _HEADINGS = 16  # 2π / _TURN_RAD: the headings a search reaches, from the start's
+_TURN_IN = 4.0  # arriving any way round: a pose this many radii from the target or nearer tries to turn in
 
 Clear = Callable[[FloatArray, FloatArray], np.ndarray]  # (starts, ends) → whether each chord is clear
 
@@ -57,11 +59,12 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
            bounds_min: FloatArray, bounds_max: FloatArray, radius: float, spacing_m: float, reach_m: float,
            max_nodes: int) -> FloatArray | None:
     """Points from the start, at most `spacing_m` apart, along forward arcs of `radius` and straight
-    stretches, ending at `target`: from a pose within a motion of it facing `facing` (within π/8; None:
-    any way), or from one facing it (within π/8, and, with a `facing`, the line to it within π/4 of that)
-    with a clear straight line to it. Every chord passes `clear` and stays within the bounds, every pose
-    within `reach_m` of the start; None if none is found within `max_nodes` poses (see the module
-    docstring)."""
+    stretches, ending at `target`. With a `facing`, from a pose within a motion of it facing that way
+    (within π/8), or from one facing it (within π/8, the line to it within π/4 of `facing`) with a clear
+    straight line to it. Without (any way round): from a pose that turns at `radius` until it faces the
+    target and runs straight in (`_turned_towards`), so the path keeps the car's curvature to its end.
+    Every chord passes `clear` and stays within the bounds, every point within `reach_m` of the start;
+    None if none is found within `max_nodes` poses (see the module docstring)."""
     step = radius * _TURN_RAD
     count = max(2, math.ceil(step / spacing_m))
     s = step * np.arange(1, count + 1) / count
@@ -80,8 +83,15 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
         _, g, node = heapq.heappop(heap)
         x, y, k = xs[node], ys[node], ks[node]
         theta = heading_rad + k * _TURN_RAD
-        if _joins(x, y, theta, target, facing, step=step, clear=clear):
-            return np.vstack([_traced(node, parents, paths), target])
+        if facing is not None:
+            tail = target.reshape(1, 2) if _joins(x, y, theta, target, facing, step=step, clear=clear) else None
+        elif math.hypot(target[0] - x, target[1] - y) <= _TURN_IN * radius:
+            tail = _turned_towards(x, y, theta, target, radius=radius, spacing_m=spacing_m, clear=clear)
+        else:
+            tail = None
+        if (tail is not None and ((tail >= lo) & (tail <= hi)).all()
+                and np.hypot(*(tail - start).T).max() <= reach_m):
+            return np.vstack([_traced(node, parents, paths), tail])
         c, sn = math.cos(theta), math.sin(theta)
         points = motions @ np.array([[c, sn], [-sn, c]]) + (x, y)  # (3, count, 2)
         starts = np.concatenate([np.full((3, 1, 2), (x, y)), points[:, :-1]], axis=1).reshape(-1, 2)
@@ -102,18 +112,48 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
     return None
 
 
-def _joins(x: float, y: float, theta: float, target: FloatArray, facing: float | None, *, step: float,
+def _joins(x: float, y: float, theta: float, target: FloatArray, facing: float, *, step: float,
            clear: Clear) -> bool:
     """Whether the pose (x, y, θ) joins the target: there already (within a motion, facing `facing`
-    within π/8, if given), or facing it (within π/8, and the line to it within π/4 of `facing`, if given)
-    with a clear straight line to it."""
+    within π/8), or facing it (within π/8, and the line to it within π/4 of `facing`) with a clear
+    straight line to it."""
     gap = math.hypot(target[0] - x, target[1] - y)
     if gap <= step:
-        return facing is None or abs(math.remainder(theta - facing, 2.0 * math.pi)) <= _TURN_RAD
+        return abs(math.remainder(theta - facing, 2.0 * math.pi)) <= _TURN_RAD
     towards = math.atan2(target[1] - y, target[0] - x)
     return (abs(math.remainder(theta - towards, 2.0 * math.pi)) <= _TURN_RAD
-            and (facing is None or abs(math.remainder(towards - facing, 2.0 * math.pi)) <= 2.0 * _TURN_RAD)
+            and abs(math.remainder(towards - facing, 2.0 * math.pi)) <= 2.0 * _TURN_RAD
             and bool(clear(np.array([[x, y]]), target.reshape(1, 2))[0]))
+
+
+def _turned_towards(x: float, y: float, theta: float, target: FloatArray, *, radius: float, spacing_m: float,
+                    clear: Clear) -> FloatArray | None:
+    """From the pose (x, y, θ) to the target: an arc of `radius`, left or right, until the car faces the
+    target, then straight in (Dubins' CS path to a point), as points at most `spacing_m` apart after the
+    pose; the shorter of the two whose chords pass `clear`, None if neither does (or the target lies
+    within both turning circles). The tangent point of the circle centred c, for a target v = t − c at
+    distance D ≥ r, lies at angle atan2(v) ∓ acos(r / D) round c (left, right)."""
+    best: tuple[float, FloatArray] | None = None
+    for side in (1.0, -1.0):
+        c = np.array([x - side * radius * math.sin(theta), y + side * radius * math.cos(theta)])
+        v = target - c
+        gap = math.hypot(v[0], v[1])
+        if gap < radius:
+            continue
+        leave = math.atan2(v[1], v[0]) - side * math.acos(radius / gap)  # where the straight run leaves
+        begin = theta - side * 0.5 * math.pi  # the pose's angle round c
+        sweep = ((leave - begin) * side) % (2.0 * math.pi)
+        count = max(1, math.ceil(sweep * radius / spacing_m))
+        angles = begin + side * sweep * np.arange(1, count + 1) / count
+        arc = c + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+        run = math.sqrt(max(gap * gap - radius * radius, 0.0))
+        inner = max(1, math.ceil(run / spacing_m))
+        straight = arc[-1] + (target - arc[-1]) * (np.arange(1, inner + 1) / inner)[:, None]
+        tail = np.vstack([arc, straight])
+        length = sweep * radius + run
+        if (best is None or length < best[0]) and clear(np.vstack([[x, y], tail[:-1]]), tail).all():
+            best = (length, tail)
+    return None if best is None else best[1]
 
 
 def _traced(node: int, parents: list[int], paths: list[FloatArray]) -> FloatArray:

@@ -221,3 +221,22 @@ def test_a_goal_close_behind_a_wide_turning_car_is_reached_round_a_loop(shared_d
     path = _assert_verified(scenario, plan_scenario(scenario))
     behind = np.linalg.norm(scenario.goals_array[0] - scenario.start.xy)
     assert polyline_length(path) <= 2.0 * math.pi / scenario.max_curvature + 2.0 * behind  # a loop, not a tour
+
+
+def test_a_goal_within_the_cars_turning_circle_is_reached_round_a_loop(shared_dir: Path, tmp_path: Path):
+    # A random ACES query: the goal 0.69 m ahead and to the left of a car that turns at 0.91 m, inside its
+    # left turning circle. No route's lead-in reaches it, and a path searched over the car's turns that ran
+    # straight in from its last pose (up to π/8 off it) kinked where the refinement could not unbend it:
+    # `no_path`. Turning at the car's radius until it faces the goal and running straight in, it is reached
+    # round a loop: 6.68 m (BIT* with a Dubins car, 6.47 m after 15 s).
+    aces = shared_dir / "external" / "carmen" / "aces-map.yaml"
+    if not aces.is_file():
+        pytest.skip(f"{aces} is absent")
+    robot = {"width": 0.6, "length": 0.819, "wheelbase": 0.632, "safety_distance": 0.2037, "max_speed": 1.0,
+             "max_steering_angle": 0.6048, "max_steering_rate": 0.5}
+    doc = _scenario_doc("aces-loop", map_path=str(aces), start=(-0.6299, -5.0155, 1.6857), goal=(-1.0464, -4.4621),
+                        description="", robot=robot)
+    (tmp_path / "aces-loop.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "aces-loop.json")
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    assert polyline_length(path) <= 2.0 * math.pi / scenario.max_curvature + 1.0

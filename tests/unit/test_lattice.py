@@ -59,7 +59,8 @@ def test_a_search_to_a_point_behind_the_car_loops_round_to_it_any_way_round():
                   bounds_min=_LO, bounds_max=_HI, radius=1.0, spacing_m=0.1, reach_m=math.inf, max_nodes=3000)
     assert path is not None and np.allclose(path[-1], [-0.5, 0.0])
     assert path[1, 0] > 0.0 and abs(path[1, 1]) < 0.01  # off along the heading
-    assert np.max(menger_curvature(path[:-1])) <= 1.0 + 1e-9  # arcs of radius 1 m and straight runs
+    # Arcs of radius 1 m and straight runs to its end: the last turns until it faces the point and runs in.
+    assert np.max(menger_curvature(path)) <= 1.0 + 1e-6
     assert polyline_length(path) < 2.0 * math.pi * 1.0 + 1.0  # about one loop of the turning circle, not a wander
 
 
