@@ -29,14 +29,10 @@ from services.planner.core import (
 from services.maps.corridor import CorridorSettings, plan_in_corridor
 from services.maps.seed import drivable_path
 from services.maps.start import hemmed_in
+from services.planner.lattice import WIDER
 from services.planner.refine import RefineSettings
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed, smooth
-
-
-# A path searched on the map over the car's turns where the planner's routes fail (`services.maps.seed`):
-# its arcs this much wider than the radius the refinement plans to, as the lead-ins it searches.
-_SEED_WIDER = 1.05
 
 
 @dataclass(frozen=True)
@@ -187,7 +183,7 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
                     route_keep_to=keep_to, meets_others=meets_others, route_seed=seed),
                 seed_fn=lambda: drivable_path(
                     grids[0].grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goal=goals[0],
-                    radius_m=_SEED_WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
+                    radius_m=WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
                     margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
                     bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max)),
                 settings=settings.corridor,

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length
-from services.planner.lattice import lead_in
+from services.planner.lattice import WIDER, lead_in, turning_arc
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -29,9 +29,8 @@ _STRAIGHT_COS = math.cos(1e-6)  # legs and heading within 1e-6 rad of parallel n
 _TURN_WIDER = 1.15
 _APPROACHES = 8  # directions the last goal is approached from, when its approach breaks the curvature bound
 _MIN_TURN_RAD = math.pi / 8  # turns smaller than this (either way round) get no turning lead-in
-# A lead-in searched over the car's turns (`lattice.lead_in`): its radius (a hall the single turns, wider,
-# do not fit in may fit it) and where it joins the route, in turning radii along it.
-_LEAD_WIDER = 1.05
+# A lead-in searched over the car's turns (`lattice.lead_in`, its arcs `lattice.WIDER` planning radii):
+# where it joins the route, in turning radii along it.
 _LEAD_AHEAD = 3.0
 _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance on the start)
 # A drivable path handed in (`route_seed`) is refined whole, its steps shrinking by at most 1 % an
@@ -179,16 +178,6 @@ def _route(
     return legs
 
 
-def _turn(start: FloatArray, heading_rad: float, *, radius: float, turn_rad: float, step_m: float) -> FloatArray:
-    """The circle of `radius` a car at (start, heading) follows turning by `turn_rad` (left > 0), as
-    points at most `step_m` apart."""
-    side = math.copysign(1.0, turn_rad)
-    centre = start + side * radius * np.array([-math.sin(heading_rad), math.cos(heading_rad)])
-    count = max(2, math.ceil(abs(turn_rad) * radius / step_m) + 1)
-    angle = heading_rad - side * 0.5 * math.pi + np.linspace(0.0, turn_rad, count)
-    return centre + radius * np.column_stack([np.cos(angle), np.sin(angle)])
-
-
 def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: float, step_m: float) -> list[FloatArray]:
     """Lead-ins that turn the car onto the direction the route leaves the start in (towards its point a
     turning radius on): the short way round, then the long way (a loop, which a corridor too narrow to
@@ -200,7 +189,7 @@ def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: fl
     out = []
     for turn in sorted((left, left - 2.0 * math.pi), key=abs):
         if _MIN_TURN_RAD <= abs(turn) <= 2.0 * math.pi - _MIN_TURN_RAD:
-            out.append(_turn(start, heading_rad, radius=radius, turn_rad=turn, step_m=step_m))
+            out.append(turning_arc(start, heading_rad, radius=radius, turn_rad=turn, step_m=step_m))
     return out
 
 
@@ -397,7 +386,7 @@ def plan_path(
                                and _broken_near_start(best.points, 1.0 / radius, 2.0 * radius)))
         if first_leg is not None and failed_at_start and not late():
             lead = lead_in(start=start, heading_rad=heading_rad, route=first_leg, stack=stack,
-                           bounds_min=bounds_min, bounds_max=bounds_max, radius=_LEAD_WIDER * radius,
+                           bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
                            level=settings.level, spacing_m=settings.spacing_m, ahead_m=_LEAD_AHEAD * radius)
             if lead is not None and _clear(lead, ellipses, bounds_min, bounds_max, level=settings.level):
                 legs = search(goals, lead=lead)

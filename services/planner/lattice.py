@@ -28,6 +28,10 @@ from services.geometry import EllipseStack, FloatArray
 _TURN_RAD = math.pi / 8  # each motion turns by this much (or not at all)
 _HEADINGS = 16  # 2π / _TURN_RAD: the headings a search reaches, from the start's
 _TURN_IN = 4.0  # arriving any way round: a pose this many radii from the target or nearer tries to turn in
+# A searched path's arcs are this many planning radii: a little wider, for the refinement's curvature budget
+# (which its step floors make stricter), than the radius itself, and narrower than the single-turn lead-ins'
+# (`services.planner.core`), so that a hall those do not fit in may fit it.
+WIDER = 1.05
 
 Clear = Callable[[FloatArray, FloatArray], np.ndarray]  # (starts, ends) → whether each chord is clear
 
@@ -143,9 +147,7 @@ def _turned_towards(x: float, y: float, theta: float, target: FloatArray, *, rad
         leave = math.atan2(v[1], v[0]) - side * math.acos(radius / gap)  # where the straight run leaves
         begin = theta - side * 0.5 * math.pi  # the pose's angle round c
         sweep = ((leave - begin) * side) % (2.0 * math.pi)
-        count = max(1, math.ceil(sweep * radius / spacing_m))
-        angles = begin + side * sweep * np.arange(1, count + 1) / count
-        arc = c + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+        arc = turning_arc(np.array([x, y]), theta, radius=radius, turn_rad=side * sweep, step_m=spacing_m)[1:]
         run = math.sqrt(max(gap * gap - radius * radius, 0.0))
         inner = max(1, math.ceil(run / spacing_m))
         straight = arc[-1] + (target - arc[-1]) * (np.arange(1, inner + 1) / inner)[:, None]
@@ -154,6 +156,17 @@ def _turned_towards(x: float, y: float, theta: float, target: FloatArray, *, rad
         if (best is None or length < best[0]) and clear(np.vstack([[x, y], tail[:-1]]), tail).all():
             best = (length, tail)
     return None if best is None else best[1]
+
+
+def turning_arc(start: FloatArray, heading_rad: float, *, radius: float, turn_rad: float,
+                step_m: float) -> FloatArray:
+    """The circle of `radius` a car at (start, heading) follows turning by `turn_rad` (left > 0, right < 0,
+    −0.0 on the right), as points at most `step_m` apart from the start on."""
+    side = math.copysign(1.0, turn_rad)
+    centre = start + side * radius * np.array([-math.sin(heading_rad), math.cos(heading_rad)])
+    count = max(2, math.ceil(abs(turn_rad) * radius / step_m) + 1)
+    angle = heading_rad - side * 0.5 * math.pi + np.linspace(0.0, turn_rad, count)
+    return centre + radius * np.column_stack([np.cos(angle), np.sin(angle)])
 
 
 def _traced(node: int, parents: list[int], paths: list[FloatArray]) -> FloatArray:
