@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from schemas.files import PlanFile, PlanTimings
+from schemas.occupancy import OccupancyGrid
 from schemas.scenario import OccupancyGridObstacle, Scenario
 from services.convert import LocalFrame, ellipse_to_model
 from services.ellipsoids.cover import cover_polygon
@@ -26,7 +27,7 @@ from services.geometry import Ellipse
 from services.planner.core import (
     MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
 )
-from services.maps.corridor import CorridorSettings, plan_in_corridor
+from services.maps.corridor import CoarseGrid, CorridorSettings, plan_in_corridor
 from services.maps.seed import drivable_path
 from services.maps.start import hemmed_in
 from services.planner.lattice import WIDER
@@ -96,14 +97,14 @@ def fit_known_obstacles(
 def plan_on_model(
     scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
     route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
-    meets_others: MeetsOthers = meets_none, route_seed: np.ndarray | None = None,
+    meets_others: MeetsOthers = meets_none, route_seed: list[np.ndarray] | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
     on the model every planner is handed. Goals reached at the start, or with the goal before them
     (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
     `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
-    route may go, and a drivable path to the first goal to refine instead (`services.planner.core.plan_path`);
+    route may go, and drivable legs through the first goals to refine instead (`services.planner.core.plan_path`);
     `meets_others`: whether a plan meets an obstacle it was not made among (`services.planner.core.plan_within`)."""
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if not len(goals):
@@ -153,6 +154,22 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
                                       on_round=on_round))
 
 
+def _drivable(scenario: Scenario, grid: OccupancyGrid, goals: np.ndarray, coarse: CoarseGrid, *,
+              settings: PlanSettings) -> Iterator[list[np.ndarray]]:
+    """Legs the car can drive, searched on the map, for the corridor's plans to go on from where they
+    fail (`services.maps.seed`), each searched when the plans from the one before have failed: to the
+    first goal, arriving any way round (the routes go on from it); then, with more goals, through them
+    all, each arrived at facing the way on where that is found (a goal the next lies back from)."""
+    for count in sorted({1, len(goals)}):
+        legs = drivable_path(grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goals=goals[:count],
+                             radius_m=WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
+                             margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
+                             bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max),
+                             to_go=coarse.distances_to)
+        if legs is not None:
+            yield legs
+
+
 def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
                 on_round: Callable[[int, int], None] | None) -> PlanFile:
     clock = _Clock()
@@ -181,11 +198,7 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
                 plan_fn=lambda ellipses, lengths, keep_to, meets_others, seed: plan_on_model(
                     scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths,
                     route_keep_to=keep_to, meets_others=meets_others, route_seed=seed),
-                seed_fn=lambda: drivable_path(
-                    grids[0].grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goal=goals[0],
-                    radius_m=WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
-                    margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
-                    bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max)),
+                seed_fn=lambda coarse: _drivable(scenario, grids[0].grid, goals, coarse, settings=settings),
                 settings=settings.corridor,
                 timer=clock.stage,
                 on_round=on_round,

@@ -47,18 +47,20 @@ what the query can use is built:
    cover. After a curve that failed among all it meets, once, the pieces its path ran within their own
    tolerance of are fitted again tighter: a start facing along a wall a few centimetres beyond the
    margin may find no room to turn at the car's curvature in the cover's excess.
-5. Where the plans still end without a verified curve, a path the car can drive to the first goal is
-   searched on the map itself, over the car's own turns (`services.maps.seed`), and the plans go on from
-   it, refined as the route: the tangent graph's routes are blind to the heading and the refinement is
-   local, so a goal a little behind the car, a corner too tight for its turning radius or a way out on
-   the other side of a pillar left no plan where the car could drive. When that too ends unverified,
-   the answer (and its reason) is the plan before it.
+5. Where the plans still end without a verified curve, a path the car can drive is searched on the map
+   itself, over the car's own turns, ordered by the coarse grid's distance left to each goal
+   (`services.maps.seed`), and the plans go on from it, refined as the route: the tangent graph's routes
+   are blind to the heading and the refinement is local, so a goal a little behind the car, a corner too
+   tight for its turning radius, a way out on the other side of a pillar or a goal the next lies back
+   from left no plan where the car could drive. The caller hands such paths one at a time (to the
+   first goal, then through them all: `cvxnav.plan`); when the plans from every one end unverified,
+   the answer (and its reason) is the plan before them.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from itertools import chain
@@ -70,7 +72,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from services.geometry import Ellipse, EllipseStack, FloatArray
+from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs
 from schemas.occupancy import OccupancyGrid
 from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray
 from services.planner.core import MeetsOthers, PathPlan
@@ -158,6 +160,26 @@ class CoarseGrid:
             index.flat[nodes] = np.arange(len(nodes))
             self._graph = (nodes, _grid_graph(self.passable, index, self.s))
         return self._graph
+
+    def distances_to(self, point: FloatArray) -> Callable[[FloatArray], FloatArray]:
+        """The length of the shortest 16-connected path from each of some world points' coarse cells to
+        `point`'s, among the passable cells (∞ where none joins them): the distance left to go that a search
+        over the car's own turns is ordered by (`services.maps.seed`), which sees the walls on the way."""
+        nodes, graph = self._nodes()
+        g = self.grid.to_grid(np.reshape(point, (1, 2))) / self.s + 1.0
+        cell = int(np.floor(g[0, 1])) * self.nc + int(np.floor(g[0, 0]))
+        at = int(np.searchsorted(nodes, cell))
+        dist = np.full(self.passable.size, np.inf)
+        if at < len(nodes) and nodes[at] == cell:
+            dist[nodes] = dijkstra(graph, indices=at)
+
+        def distance(points: FloatArray) -> FloatArray:
+            g = self.grid.to_grid(points) / self.s + 1.0
+            a = np.clip(np.floor(g[:, 0]).astype(int), 0, self.nc - 1)
+            b = np.clip(np.floor(g[:, 1]).astype(int), 0, self.nr - 1)
+            return dist[b * self.nc + a]
+
+        return distance
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
         """The shortest 16-connected path through `waypoints` (start, goals) in order, and the corridor: for each leg
@@ -367,12 +389,12 @@ def plan_in_corridor(
     cover: GridCover,
     waypoints: FloatArray,
     fixed: list[Ellipse],
-    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers, FloatArray | None],
+    plan_fn: Callable[[list[Ellipse], tuple[float, ...], KeepTo | None, MeetsOthers, list[FloatArray] | None],
                       tuple[PathPlan, Smoothed | None]],
     settings: CorridorSettings = CorridorSettings(),
     timer: Callable[[str], AbstractContextManager] = nullcontext,
     on_round: Callable[[int, int], None] | None = None,
-    seed_fn: Callable[[], FloatArray | None] | None = None,
+    seed_fn: Callable[[CoarseGrid], Iterator[list[FloatArray]]] | None = None,
 ) -> CorridorPlan:
     """Plan start → goals (`waypoints`) among `fixed` ellipses (the scenario's other obstacles, grown) and
     the grid cover's, fitting only the tiles the plan comes near (see the module docstring).
@@ -381,10 +403,12 @@ def plan_in_corridor(
     corridor; then the paths are checked against every other fitted ellipse (the exact segment test on
     the refined points, and on the smoothed curve's samples at `_CURVE_LEVEL`) and against the tiles
     not fitted, and planned again with whatever they touch. `plan_fn(grown, leg_lengths_m, keep_to,
-    meets_others)` plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length
+    meets_others, seed)` plans on a list of grown ellipses (`cvxnav.plan.plan_on_model`), told each leg's length
     on the coarse grid (where the route search starts its bounds), where the route may go (the corridor,
-    or None) and how to tell a plan that meets a piece it was not made among (which it hands back at
-    once: `services.planner.core.plan_within`); `timer(stage)` wraps the "corridor" and "fit" steps;
+    or None), how to tell a plan that meets a piece it was not made among (which it hands back at
+    once: `services.planner.core.plan_within`) and the legs to plan from where the plans failed (step 5 of the
+    module docstring; None before), taken from `seed_fn(coarse grid)` one at a time while plans from them
+    fail; `timer(stage)` wraps the "corridor" and "fit" steps;
     `on_round(round, ellipses)` is told as each plan starts (a progress display: a building's plan may
     take several).
     """
@@ -433,7 +457,8 @@ def plan_in_corridor(
 
     plan, smoothed, grown = PathPlan("no_path", np.zeros((0, 2))), None, list(fixed)
     corridor, opened, tightened = keep_to, False, False
-    seed: FloatArray | None = None
+    seed: list[FloatArray] | None = None
+    seeds: Iterator[list[FloatArray]] | None = None
     unseeded: tuple[PathPlan, Smoothed | None, list[Ellipse]] | None = None  # the answer before the seed
     for rounds in range(1, settings.max_rounds + 1):
         grown = list(fixed) + [used[k].grown for k in _uncovered(used)]
@@ -476,17 +501,19 @@ def plan_in_corridor(
                     continue
         if keep_to is None:
             # No route among some of the ellipses (so none among all), or a curve failed among all it meets:
-            # once, a path the car can drive, searched on the map, and the plans go on from it.
-            if unseeded is None and seed_fn is not None:
+            # the next path the car can drive, searched on the map, and the plans go on from it.
+            if seed_fn is not None:
+                seeds = seed_fn(coarse_grid) if seeds is None else seeds
                 with timer("corridor"):
-                    seed = seed_fn()
+                    seed = next(seeds, None)
                 if seed is not None:
-                    unseeded = plan, smoothed, grown
+                    unseeded = unseeded or (plan, smoothed, grown)
+                    driven = joined_legs(seed)
                     with timer("fit"):
-                        tiles.update(cover.tiles_near(_densify(seed, 0.1), cover.reach_m + 0.1))
-                        cover.tighten(seed, near=True)
+                        tiles.update(cover.tiles_near(_densify(driven, 0.1), cover.reach_m + 0.1))
+                        cover.tighten(driven, near=True)
                         fitted = _pieces(cover, tiles, waypoints)
-                        used = _renewed(used, fitted, seed, settings.band_m)
+                        used = _renewed(used, fitted, driven, settings.band_m)
                     continue
             break
         keep_to = None  # the corridor may have closed a way (its cells are coarse): plan without it

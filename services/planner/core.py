@@ -251,15 +251,15 @@ def plan_path(
     route_keep_to: KeepTo | None = None,
     late: Callable[[], bool] = lambda: False,
     meets_others: MeetsOthers = meets_none,
-    route_seed: FloatArray | None = None,
+    route_seed: list[FloatArray] | None = None,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
 
     `route_estimate_m`: each leg's length as a coarser search found it, where the route search starts
     its bounds; `route_keep_to`: where the route may go, a corridor (`route.shortest_route`);
-    `route_seed`: a path the car can drive from the start to the first goal, found elsewhere where the
-    routes below failed (`services.maps.seed`): it is refined as the route (on from the goal as the route
-    search finds it), and nothing else is tried.
+    `route_seed`: legs the car can drive from the start through the first goals, found elsewhere where the
+    routes below failed (`services.maps.seed`): they are refined as the route (on from the last of those
+    goals as the route search finds it), and nothing else is tried.
 
     The route search ignores curvature, so its shortest route can demand a turn the car cannot make
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
@@ -315,8 +315,10 @@ def plan_path(
     tries.append((None, radius))
 
     def search(to: FloatArray, *, lead: FloatArray | None = None, extra_m: float = 0.0) -> list[FloatArray] | None:
+        """The route to the goals `to`, the last of `goals` (their legs' estimates the last ones)."""
         return _route(start=start, lead=lead, goals=to, ellipses=ellipses, bounds_min=bounds_min,
-                      bounds_max=bounds_max, level=settings.level, extra_m=extra_m, estimate_m=route_estimate_m,
+                      bounds_max=bounds_max, level=settings.level, extra_m=extra_m,
+                      estimate_m=None if route_estimate_m is None else route_estimate_m[len(goals) - len(to):],
                       keep_to=route_keep_to)
 
     best: PathPlan | None = None
@@ -352,9 +354,11 @@ def plan_path(
         return best
 
     if route_seed is not None:
-        legs = search(goals, lead=route_seed[:-1])  # its last pose on to the goal, as the route search joins it
+        *before, last = route_seed
+        # The last leg's last pose on to its goal and any after it, as the route search joins it.
+        legs = search(goals[len(before):], lead=last[:-1])
         if legs is not None:
-            handed, _ = refined(legs, how=replace(settings, **_SEED_REFINE))
+            handed, _ = refined(before + legs, how=replace(settings, **_SEED_REFINE))
             if handed is not None:
                 return handed
         return verdict()

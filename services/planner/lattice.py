@@ -34,6 +34,7 @@ _TURN_IN = 4.0  # arriving any way round: a pose this many radii from the target
 WIDER = 1.05
 
 Clear = Callable[[FloatArray, FloatArray], np.ndarray]  # (starts, ends) → whether each chord is clear
+ToGo = Callable[[FloatArray], FloatArray]  # points → the distance left from each to the target
 
 
 def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: EllipseStack, bounds_min: FloatArray,
@@ -61,14 +62,19 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
 
 def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing: float | None, clear: Clear,
            bounds_min: FloatArray, bounds_max: FloatArray, radius: float, spacing_m: float, reach_m: float,
-           max_nodes: int) -> FloatArray | None:
+           max_nodes: int, to_go: ToGo | None = None, greed: float = 1.0,
+           facing_within: float = 2.0 * _TURN_RAD) -> FloatArray | None:
     """Points from the start, at most `spacing_m` apart, along forward arcs of `radius` and straight
     stretches, ending at `target`. With a `facing`, from a pose within a motion of it facing that way
-    (within π/8), or from one facing it (within π/8, the line to it within π/4 of `facing`) with a clear
-    straight line to it. Without (any way round): from a pose that turns at `radius` until it faces the
-    target and runs straight in (`_turned_towards`), so the path keeps the car's curvature to its end.
+    (within π/8), or from one facing it (within π/8, the line to it within `facing_within` of `facing`)
+    with a clear straight line to it. Without (any way round): from a pose that turns at `radius` until it
+    faces the target and runs straight in (`_turned_towards`), so the path keeps the car's curvature to its end.
     Every chord passes `clear` and stays within the bounds, every point within `reach_m` of the start;
-    None if none is found within `max_nodes` poses (see the module docstring)."""
+    None if none is found within `max_nodes` poses (see the module docstring). Poses are taken in order
+    of the length driven plus `greed` times `to_go` (the straight distance to the target if None; a pose
+    whose `to_go` is ∞ is dropped): above 1, weighted A* (Pohl, 1970), which takes fewer poses before it
+    reaches the target, by a path at most `greed` times the shortest the lattice holds if `to_go` never
+    overestimates."""
     step = radius * _TURN_RAD
     count = max(2, math.ceil(step / spacing_m))
     s = step * np.arange(1, count + 1) / count
@@ -79,16 +85,22 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
     lo, hi = np.asarray(bounds_min, dtype=float), np.asarray(bounds_max, dtype=float)
     target = np.asarray(target, dtype=float)
 
+    def straight_to_go(points: FloatArray) -> FloatArray:
+        return np.hypot(*(target - points).T)
+
+    to_go = to_go or straight_to_go
+
     xs, ys, ks, parents = [float(start[0])], [float(start[1])], [0], [-1]
     paths: list[FloatArray] = [np.asarray(start, dtype=float).reshape(1, 2)]
     seen = {(round(xs[0] / step), round(ys[0] / step), 0)}
-    heap = [(float(np.linalg.norm(target - start)), 0.0, 0)]
+    heap = [(float(to_go(np.reshape(start, (1, 2)))[0]), 0.0, 0)]
     while heap and len(xs) < max_nodes:
         _, g, node = heapq.heappop(heap)
         x, y, k = xs[node], ys[node], ks[node]
         theta = heading_rad + k * _TURN_RAD
         if facing is not None:
-            tail = target.reshape(1, 2) if _joins(x, y, theta, target, facing, step=step, clear=clear) else None
+            joins = _joins(x, y, theta, target, facing, within=facing_within, step=step, clear=clear)
+            tail = target.reshape(1, 2) if joins else None
         elif math.hypot(target[0] - x, target[1] - y) <= _TURN_IN * radius:
             tail = _turned_towards(x, y, theta, target, radius=radius, spacing_m=spacing_m, clear=clear)
         else:
@@ -101,10 +113,12 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
         starts = np.concatenate([np.full((3, 1, 2), (x, y)), points[:, :-1]], axis=1).reshape(-1, 2)
         passed = clear(starts, points.reshape(-1, 2)).reshape(3, count).all(axis=1)
         inside = ((points >= lo) & (points <= hi)).all(axis=(1, 2))
-        for m in np.flatnonzero(passed & inside):
+        moves = np.flatnonzero(passed & inside)
+        left = greed * to_go(points[moves, -1])
+        for m, h in zip(moves.tolist(), left.tolist()):
             (px, py), pk = points[m, -1], (k + turns[m]) % _HEADINGS
             key = (round(px / step), round(py / step), pk)
-            if key in seen or math.hypot(px - start[0], py - start[1]) > reach_m:
+            if key in seen or h == math.inf or math.hypot(px - start[0], py - start[1]) > reach_m:
                 continue
             seen.add(key)
             xs.append(float(px))
@@ -112,21 +126,21 @@ def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing:
             ks.append(pk)
             parents.append(node)
             paths.append(points[m])
-            heapq.heappush(heap, (g + step + math.hypot(px - target[0], py - target[1]), g + step, len(xs) - 1))
+            heapq.heappush(heap, (g + step + h, g + step, len(xs) - 1))
     return None
 
 
-def _joins(x: float, y: float, theta: float, target: FloatArray, facing: float, *, step: float,
+def _joins(x: float, y: float, theta: float, target: FloatArray, facing: float, *, within: float, step: float,
            clear: Clear) -> bool:
     """Whether the pose (x, y, θ) joins the target: there already (within a motion, facing `facing`
-    within π/8), or facing it (within π/8, and the line to it within π/4 of `facing`) with a clear
+    within π/8), or facing it (within π/8, and the line to it within `within` of `facing`) with a clear
     straight line to it."""
     gap = math.hypot(target[0] - x, target[1] - y)
     if gap <= step:
         return abs(math.remainder(theta - facing, 2.0 * math.pi)) <= _TURN_RAD
     towards = math.atan2(target[1] - y, target[0] - x)
     return (abs(math.remainder(theta - towards, 2.0 * math.pi)) <= _TURN_RAD
-            and abs(math.remainder(towards - facing, 2.0 * math.pi)) <= 2.0 * _TURN_RAD
+            and abs(math.remainder(towards - facing, 2.0 * math.pi)) <= within
             and bool(clear(np.array([[x, y]]), target.reshape(1, 2))[0]))
 
 

@@ -240,3 +240,21 @@ def test_a_goal_within_the_cars_turning_circle_is_reached_round_a_loop(shared_di
     scenario = load_scenario(tmp_path / "aces-loop.json")
     path = _assert_verified(scenario, plan_scenario(scenario))
     assert polyline_length(path) <= 2.0 * math.pi / scenario.max_curvature + 1.0
+
+
+def test_a_goal_the_next_lies_back_from_is_passed_round_a_loop(shared_dir: Path, tmp_path: Path):
+    # A random three-goal depot query for the depot's car (turning at 0.88 m): from goal 1 in the hall, up to
+    # goal 2 between two pillars, then back west past them to goal 3. The route turns back at goal 2, sharper
+    # than any refinement of it could bend: every plan broke the curvature bound there, and the plan ended in
+    # no_path. Legs searched over the car's turns on the map itself, goal by goal, each goal with a next
+    # arrived at facing not more than a right angle off the way on, are refined instead: a loop at goal 2.
+    doc = _scenario_doc("depot-three", map_path=str(shared_dir / "maps" / "depot.yaml"),
+                        start=(7.8704, 14.1642, -0.9279), goal=(11.7000, 4.3956), description="")
+    doc["goals"] += [[23.8756, 12.2528], [17.5222, 14.0241]]
+    (tmp_path / "depot-three.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "depot-three.json")
+    path = _assert_verified(scenario, plan_scenario(scenario))
+    passed = [int(np.argmin(np.linalg.norm(path - goal, axis=1))) for goal in scenario.goals_array]
+    assert passed == sorted(passed)
+    assert all(np.linalg.norm(path[k] - goal) <= scenario.goal_tolerance
+               for k, goal in zip(passed, scenario.goals_array))

@@ -1,4 +1,4 @@
-"""`services.maps.seed.drivable_path`: a path the car can drive to its goal, searched on the grid itself."""
+"""`services.maps.seed.drivable_path`: legs the car can drive through its goals, searched on the grid itself."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 from schemas.occupancy import OccupancyGrid
 from services.drive.controller import menger_curvature
 from services.geometry import resample_polyline
+from services.maps.corridor import CoarseGrid
 from services.maps.seed import drivable_path
 
 _RES = 0.05
@@ -25,10 +26,15 @@ def _room(width_m: float, height_m: float, *, walls: list[tuple[float, float, fl
     return OccupancyGrid.from_mask(blocked, resolution_m=_RES)
 
 
-def _path(grid: OccupancyGrid, start, heading_rad: float, goal):
+def _legs(grid: OccupancyGrid, start, heading_rad: float, goals, **options):
     lo, hi = grid.bounds()
-    return drivable_path(grid, start=np.array(start), heading_rad=heading_rad, goal=np.array(goal), radius_m=1.0,
-                         margin_m=_MARGIN, spacing_m=0.09, bounds_min=lo, bounds_max=hi)
+    return drivable_path(grid, start=np.array(start), heading_rad=heading_rad, goals=np.array(goals), radius_m=1.0,
+                         margin_m=_MARGIN, spacing_m=0.09, bounds_min=lo, bounds_max=hi, **options)
+
+
+def _path(grid: OccupancyGrid, start, heading_rad: float, goal):
+    legs = _legs(grid, start, heading_rad, [goal])
+    return None if legs is None else legs[0]
 
 
 def test_a_goal_behind_the_car_is_reached_round_a_loop_clear_of_every_wall():
@@ -56,3 +62,54 @@ def test_none_in_a_corridor_too_narrow_to_turn_round_in():
     behind it is out of reach."""
     grid = _room(8.0, 1.1)
     assert _path(grid, (2.0, 0.55), 0.0, (1.0, 0.55)) is None
+
+
+def test_goals_one_behind_the_other_are_reached_in_turn_round_a_loop():
+    """The second goal lies 1.5 m behind the first, on the car's way: the car drives through the first and
+    loops back to the second, leaving the first the way it arrived, the curvature bound kept across it."""
+    grid = _room(8.0, 8.0)
+    legs = _legs(grid, (4.0, 2.0), 0.0, [(6.0, 2.0), (4.5, 2.0)])
+    assert legs is not None and len(legs) == 2
+    assert np.allclose(legs[0][-1], [6.0, 2.0]) and np.allclose(legs[1][0], [6.0, 2.0])
+    assert np.allclose(legs[1][-1], [4.5, 2.0])
+    path = np.vstack([legs[0], legs[1][1:]])
+    assert np.max(menger_curvature(path)) <= 1.0 + 1e-6
+    assert grid.clearance(resample_polyline(path, max_spacing_m=0.005)).min() >= _MARGIN
+
+
+def test_the_distance_left_round_the_walls_finds_a_way_the_straight_distance_does_not():
+    """A wall from the floor to 2 m below the ceiling between the car and its goal: ordered by the straight
+    distance, the search fills the room before the wall within its 3 000 poses; ordered by the coarse grid's
+    distance left to the goal, which runs over the wall's end, it drives round it."""
+    grid = _room(16.0, 10.0, walls=[(7.9, 0.0, 8.1, 8.0)])
+    coarse = CoarseGrid(grid, _MARGIN, 0.2, start=np.array([2.0, 2.0]))
+    assert _legs(grid, (2.0, 2.0), 0.0, [(14.0, 2.0)]) is None
+    legs = _legs(grid, (2.0, 2.0), 0.0, [(14.0, 2.0)], to_go=coarse.distances_to)
+    assert legs is not None and np.allclose(legs[0][-1], [14.0, 2.0])
+    assert legs[0][:, 1].max() > 8.0 + _MARGIN
+    assert grid.clearance(resample_polyline(legs[0], max_spacing_m=0.005)).min() >= _MARGIN
+
+
+def test_the_distance_left_is_the_way_round_the_walls_and_infinite_where_none_joins():
+    """From a goal beyond a wall to the car: within 3 % of the shortest way round the wall's end at the
+    margin (between the polyline over its corners and the one a margin above them), and ∞ from a closed
+    box and from inside the wall."""
+    grid = _room(16.0, 10.0, walls=[(7.9, 0.0, 8.1, 8.0), (12.0, 6.0, 12.1, 9.9), (12.0, 6.0, 15.9, 6.1)])
+    to_goal = CoarseGrid(grid, _MARGIN, 0.2, start=np.array([2.0, 2.0])).distances_to(np.array([14.0, 2.0]))
+    d = to_goal(np.array([[2.0, 2.0], [14.0, 2.0], [14.0, 8.0], [8.0, 5.0]]))
+    over_corners, above_them = 2.0 * math.hypot(5.9, 6.0) + 0.2, 2.0 * math.hypot(5.9, 6.0 + _MARGIN) + 0.2
+    assert 0.97 * over_corners <= d[0] <= 1.03 * above_them
+    assert d[1] == 0.0 and np.isinf(d[2:]).all()
+
+
+def test_a_goal_before_a_wall_with_the_next_behind_is_arrived_at_facing_away_from_the_wall():
+    """The first goal is 0.3 m short of the margin before a wall, the second back where the car came
+    from: arrived at straight from the start, the car would face the wall with no room to turn; it comes
+    round and arrives facing across the wall or away from it, and goes on to the second."""
+    grid = _room(8.0, 8.0, walls=[(6.0, 2.5, 8.0, 5.5)])
+    legs = _legs(grid, (2.0, 4.0), 0.0, [(5.4, 4.0), (2.0, 6.0)])
+    assert legs is not None and len(legs) == 2 and np.allclose(legs[1][-1], [2.0, 6.0])
+    arrival = legs[0][-1] - legs[0][-2]
+    assert arrival[0] < 0.5 * np.linalg.norm(arrival)  # not within 60° of facing the wall
+    path = np.vstack([legs[0], legs[1][1:]])
+    assert grid.clearance(resample_polyline(path, max_spacing_m=0.005)).min() >= _MARGIN
