@@ -87,8 +87,8 @@ def drivable_path(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float,
         for facing in facings:
             leg = search(start=at, heading_rad=heading, target=goal, facing=facing, clear=clear,
                          bounds_min=bounds_min, bounds_max=bounds_max, radius=radius_m, spacing_m=spacing_m,
-                         reach_m=math.inf, max_nodes=max_nodes, to_go=ways[k], greed=_GREED if facing is None else 1.0,
-                         facing_within=0.5 * math.pi)
+                         reach_m=math.inf, max_nodes=max_nodes, to_go=ways[k],
+                         greed=_GREED if facing is None else 1.0, facing_within=0.5 * math.pi)
             if leg is not None:
                 break
         if leg is None:
