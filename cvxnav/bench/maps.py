@@ -18,7 +18,9 @@ The planners, each a fresh call that reads the files:
 * BIT* (OMPL), for a point robot (R²) and for a Dubins car at the car's turning radius (SE(2), the goal
   any of 16 headings at the goal): valid = a free cell of the grid planner's inflated grid (the same
   margin), motions checked every grid cell or 0.05 m, whichever is shorter; each stops once within 1 % of
-  the REFERENCE optimum, or of cvxnav's own length where there is none, or at its budget.
+  the REFERENCE optimum, or of cvxnav's own length where there is none, or at its budget. With more goals
+  than one, leg by leg (the Dubins car leaving each goal at the heading it arrived at), each leg with the
+  whole budget.
 
 Every path is judged on the true geometry (the exact distance to the blocked squares,
 `Scenario.clearance`, on the path resampled at 0.02 m). Growth: the depot tiled side by side 1×, 2× and
@@ -51,7 +53,7 @@ from cvxnav.bench.report import (
     MapTargets,
 )
 from cvxnav.bench.turns import in_turns, ratio_interval
-from services.geometry import FloatArray, polyline_length, resample_polyline
+from services.geometry import FloatArray, joined_legs, polyline_length, resample_polyline
 from schemas.occupancy import OccupancyGrid
 from schemas.scenario import OccupancyGridObstacle, Scenario, load_scenario
 
@@ -269,49 +271,61 @@ def call_bitstar(path: Path, *, dubins: bool, budget_s: float, target_m: float |
     si.setStateValidityChecker(valid)
     si.setStateValidityCheckingResolution(min(res, 0.05) / space.getMaximumExtent())
     si.setup()
-    pdef = ob.ProblemDefinition(si)
-    start = si.allocState()
-    goal_xy = scenario.goals_array[0]
-    if dubins:
-        start.setX(scenario.start.x)
-        start.setY(scenario.start.y)
-        start.setYaw(scenario.start.theta)
-        goals = ob.GoalStates(si)
-        for k in range(16):
-            g = si.allocState()
-            g.setX(float(goal_xy[0]))
-            g.setY(float(goal_xy[1]))
-            g.setYaw(-math.pi + 2.0 * math.pi * k / 16)
-            goals.addState(g)
-        goals.setThreshold(scenario.goal_tolerance)
-        pdef.addStartState(start)
-        pdef.setGoal(goals)
-    else:
-        start[0], start[1] = scenario.start.x, scenario.start.y
-        goal = si.allocState()
-        goal[0], goal[1] = float(goal_xy[0]), float(goal_xy[1])
-        pdef.setStartAndGoalStates(start, goal)
-    objective = ob.PathLengthOptimizationObjective(si)
-    if target_m is not None:
-        objective.setCostThreshold(ob.Cost(1.01 * target_m))
-    pdef.setOptimizationObjective(objective)
-    planner = og.BITstar(si)
-    planner.setProblemDefinition(pdef)
-    planner.setup()
-    begun = time.perf_counter()
-    planner.solve(ob.PlannerTerminationCondition(lambda: time.perf_counter() - begun >= budget_s))
-    if not pdef.hasExactSolution():
-        return MapAttempt(None, time.perf_counter() - t0, {}, f"BITstar: no path in {budget_s:g} s")
-    solution = pdef.getSolutionPath()
-    if dubins:
-        solution.interpolate(max(2, int(solution.length() / 0.05)))
-        states = [(s.getX(), s.getY()) for s in solution.getStates()]
-    else:
-        states = [(s[0], s[1]) for s in solution.getStates()]
+    # Leg by leg, each from where the one before ended (a Dubins leg leaving at the heading it arrived at),
+    # each with the whole budget; the 1 % target is the whole path's, so it stops a single leg only.
+    at = (scenario.start.x, scenario.start.y, scenario.start.theta)
+    legs: list[FloatArray] = []
+    length = 0.0
+    goals_xy = scenario.goals_array
+    for number, goal_xy in enumerate(goals_xy, start=1):
+        pdef = ob.ProblemDefinition(si)
+        start = si.allocState()
+        if dubins:
+            start.setX(at[0])
+            start.setY(at[1])
+            start.setYaw(at[2])
+            goals = ob.GoalStates(si)
+            for k in range(16):
+                g = si.allocState()
+                g.setX(float(goal_xy[0]))
+                g.setY(float(goal_xy[1]))
+                g.setYaw(-math.pi + 2.0 * math.pi * k / 16)
+                goals.addState(g)
+            goals.setThreshold(scenario.goal_tolerance)
+            pdef.addStartState(start)
+            pdef.setGoal(goals)
+        else:
+            start[0], start[1] = at[0], at[1]
+            goal = si.allocState()
+            goal[0], goal[1] = float(goal_xy[0]), float(goal_xy[1])
+            pdef.setStartAndGoalStates(start, goal)
+        objective = ob.PathLengthOptimizationObjective(si)
+        if target_m is not None and len(goals_xy) == 1:
+            objective.setCostThreshold(ob.Cost(1.01 * target_m))
+        pdef.setOptimizationObjective(objective)
+        planner = og.BITstar(si)
+        planner.setProblemDefinition(pdef)
+        planner.setup()
+        begun = time.perf_counter()
+        planner.solve(ob.PlannerTerminationCondition(lambda begun=begun: time.perf_counter() - begun >= budget_s))
+        if not pdef.hasExactSolution():
+            where = "" if len(goals_xy) == 1 else f" to goal {number}"
+            return MapAttempt(None, time.perf_counter() - t0, {}, f"BITstar: no path{where} in {budget_s:g} s")
+        solution = pdef.getSolutionPath()
+        length += solution.length()
+        if dubins:
+            solution.interpolate(max(2, int(solution.length() / 0.05)))
+        states = solution.getStates()
+        if dubins:
+            legs.append(np.array([(state.getX(), state.getY()) for state in states]))
+            at = (states[-1].getX(), states[-1].getY(), states[-1].getYaw())
+        else:
+            legs.append(np.array([(state[0], state[1]) for state in states]))
+            at = (states[-1][0], states[-1][1], 0.0)
     elapsed = time.perf_counter() - t0
-    reached = target_m is not None and solution.length() <= 1.01 * target_m
+    reached = target_m is not None and length <= 1.01 * target_m
     reason = "" if reached else f"BITstar: not within 1 % of {target_m:.3f} m in {budget_s:g} s" if target_m else ""
-    return MapAttempt(np.asarray(states), elapsed, {}, reason, target_s=elapsed if reached else None)
+    return MapAttempt(joined_legs(legs), elapsed, {}, reason, target_s=elapsed if reached else None)
 
 
 # --------------------------------------------------------------------------- judging and running
@@ -526,10 +540,11 @@ def map_tables(result: MapBenchResult) -> list[tuple[str, tuple[str, ...], list[
                                 if name in p.stages_ms)
             ratio = (p.time_median_ms / grid.time_median_ms if grid is not None and grid.time_median_ms
                      and p.time_median_ms and p.planner != GRID else None)
-            reached = f"; {p.target_reached}/{p.repeats} within 1 % of the target" if p.target_reached is not None else ""
+            reached = f"{p.target_reached}/{p.repeats} within 1 % of the target" if p.target_reached is not None else ""
             rows.append((label if k == 0 else "", p.planner, "yes" if p.success else ("COLLIDES" if p.collision else "no"),
                          _num(p.length_m, ".2f"), _num(p.length_ratio, ".4f"), _num(p.time_median_ms, ".0f"),
-                         _num(p.time_p90_ms, ".0f"), _num(ratio, ".2f"), stages, (p.reason + reached)[:160]))
+                         _num(p.time_p90_ms, ".0f"), _num(ratio, ".2f"), stages,
+                         "; ".join(note for note in (p.reason, reached) if note)[:160]))
     tables = [("maps: planners from reading the map file to the path", header, rows)]
     if result.growth:
         tables.append(("maps: growth with map area (the depot tiled, depot-1's query)",

@@ -223,3 +223,22 @@ def test_the_fit_is_timed_on_the_sets_every_method_solves_and_a_failure_is_repor
         assert row.point_sets == 9 and len(row.times_ms) == 3
         assert row.area_rel_diff <= 1e-6  # against the cvxpy route, on each of the nine sets
     assert not rows["mvee_fast"].error and not rows["mvee"].error
+
+
+@pytest.mark.parametrize("dubins", [False, True])
+def test_bitstar_on_a_map_plans_through_every_goal_in_order(tmp_path, dubins: bool):
+    """A waypoint file: BIT* (point and Dubins car) goes leg by leg through both goals, clear of the walls."""
+    pytest.importorskip("ompl")
+    from cvxnav.bench.maps import _scenario_doc, _write_map, call_bitstar, judge
+    from schemas.scenario import load_scenario
+
+    pixels = np.full((160, 160), 254)  # an 8 m room at 0.05 m, a wall round it
+    pixels[[0, -1], :] = pixels[:, [0, -1]] = 0
+    doc = _scenario_doc("two-goals", map_path=_write_map(tmp_path, "room", pixels, resolution_m=0.05),
+                        start=(1.5, 1.5, 0.0), goal=(6.5, 1.5), description="")
+    doc["goals"].append([1.5, 6.5])
+    (tmp_path / "two-goals.json").write_text(json.dumps(doc))
+    attempt = call_bitstar(tmp_path / "two-goals.json", dubins=dubins, budget_s=0.5, target_m=None)
+    assert attempt.path is not None, attempt.reason
+    judged = judge(load_scenario(tmp_path / "two-goals.json"), attempt.path)
+    assert judged.reaches and not judged.collides
