@@ -544,14 +544,15 @@ def joined_legs(legs: Sequence[ArrayLike]) -> FloatArray:
 
 
 def resample_polyline(points: ArrayLike, *, max_spacing_m: float) -> FloatArray:
-    """The same polyline with extra vertices so that no two neighbours are more than `max_spacing_m` apart."""
+    """The same polyline with extra vertices so that no two neighbours are more than `max_spacing_m` apart:
+    each segment p → q cut into n = ⌈|q − p| / spacing⌉ equal parts, its points p + (j / n)(q − p) for
+    j = 1 … n after the first vertex (all segments at once)."""
     z = np.asarray(points, dtype=float)
-    out = [z[:1]]
-    for p, q in zip(z[:-1], z[1:]):
-        n = max(1, int(np.ceil(np.linalg.norm(q - p) / max_spacing_m)))
-        t = np.arange(1, n + 1)[:, None] / n
-        out.append(p + t * (q - p))
-    return np.concatenate(out)
+    d = z[1:] - z[:-1]
+    n = np.maximum(1, np.ceil(np.linalg.norm(d, axis=1) / max_spacing_m).astype(np.intp))
+    segment = np.repeat(np.arange(len(d)), n)
+    j = np.arange(1, len(segment) + 1) - np.repeat(np.cumsum(n) - n, n)
+    return np.concatenate([z[:1], z[:-1][segment] + (j / n[segment])[:, None] * d[segment]])
 
 
 class PointMemory:

@@ -72,9 +72,9 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs
+from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, resample_polyline
 from schemas.occupancy import OccupancyGrid
-from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray
+from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray, Tile
 from services.planner.core import MeetsOthers, PathPlan
 from services.planner.route import KeepTo
 from services.smoother.core import Smoothed
@@ -420,7 +420,7 @@ def plan_in_corridor(
         plan = PathPlan("no_path", np.zeros((0, 2)), reason=coarse.reason)
         return CorridorPlan(plan, None, list(fixed), coarse, len(cover.fitted), total, 0)
     with timer("fit"):
-        line = np.vstack([_densify(coarse.points, 0.5 * settings.coarse_m), coarse.corridor])
+        line = np.vstack([resample_polyline(coarse.points, max_spacing_m=0.5 * settings.coarse_m), coarse.corridor])
         tiles = cover.tiles_near(line, settings.band_m)
         fitted = _pieces(cover, tiles, waypoints)
         if cover.tighten(_doors_along(cover, coarse)):  # before the first plan: a closed door costs a round
@@ -430,6 +430,10 @@ def plan_in_corridor(
                    if settings.keep_to_corridor else None)
     held: dict[int, tuple[FloatArray, list[GridPiece]]] = {}  # polylines held against the rest of the cover
 
+    def reached_by(points: FloatArray) -> set[Tile]:
+        """The tiles whose pieces a polyline may come within reach of."""
+        return cover.tiles_near(resample_polyline(points, max_spacing_m=0.1), cover.reach_m + 0.1)
+
     def met_by(points: FloatArray, level: float) -> list[GridPiece]:
         """The fitted pieces not planned among that the polyline comes within `level` of, the tiles it
         comes near fitted first. Once per polyline: the pieces of tiles fitted later are beyond its reach."""
@@ -437,7 +441,7 @@ def plan_in_corridor(
         if (known := held.get(id(points))) is not None and known[0] is points:
             return known[1]
         with timer("fit"):
-            new = cover.tiles_near(_densify(points, 0.1), cover.reach_m + 0.1) - tiles
+            new = reached_by(points) - tiles
             if new:
                 tiles.update(new)
                 fitted = _pieces(cover, tiles, waypoints)
@@ -510,7 +514,7 @@ def plan_in_corridor(
                     unseeded = unseeded or (plan, smoothed, grown)
                     driven = joined_legs(seed)
                     with timer("fit"):
-                        tiles.update(cover.tiles_near(_densify(driven, 0.1), cover.reach_m + 0.1))
+                        tiles.update(reached_by(driven))
                         cover.tighten(driven, near=True)
                         fitted = _pieces(cover, tiles, waypoints)
                         used = _renewed(used, fitted, driven, settings.band_m)
@@ -575,7 +579,7 @@ def _pieces(cover: GridCover, tiles: set, waypoints: FloatArray) -> list[GridPie
 
 def _clear_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
     """The coarse route's points, 5 cm apart, that are at least the margin from every blocked cell."""
-    points = _densify(coarse.points, 0.05)
+    points = resample_polyline(coarse.points, max_spacing_m=0.05)
     return points[cover.grid.clearance(points) >= cover.margin_m]
 
 
@@ -592,7 +596,7 @@ def _doors_along(cover: GridCover, coarse: CoarseRoute) -> FloatArray:
     sample is the margin plus the tolerance clear, the passage is narrower than that on both sides (a
     door, not a corner), and its clearest sample, if it may be the margin clear (read within a cell of
     it), is where the cover may close it."""
-    points = _densify(coarse.points, 0.1)
+    points = resample_polyline(coarse.points, max_spacing_m=0.1)
     if len(points) < 2:
         return np.zeros((0, 2))
     margin, tolerance = cover.margin_m, cover.settings.tolerance_m
@@ -689,14 +693,3 @@ def _entered(stack: EllipseStack, path: FloatArray, *, level: float) -> IntArray
         return np.zeros(0, dtype=np.intp)
     _, cols, levels = stack.segment_pairs(path[:-1], path[1:])
     return np.unique(cols[levels < level])
-
-
-def _densify(points: FloatArray, step_m: float) -> FloatArray:
-    """The polyline with extra points so that consecutive ones are at most `step_m` apart."""
-    if len(points) < 2:
-        return points
-    d = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    n = np.maximum(1, np.ceil(d / step_m).astype(np.intp))
-    seg = np.repeat(np.arange(len(d)), n)
-    t = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
-    return np.vstack([points[seg] + t[:, None] * (points[seg + 1] - points[seg]), points[-1:]])

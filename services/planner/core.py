@@ -208,14 +208,20 @@ def _clear(lead: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bo
 
 def _broken_near_start(points: FloatArray, kappa: float, within_m: float) -> bool:
     """Whether the polyline breaks the curvature bound `kappa` within `within_m` of its start."""
-    broken = 1 + np.flatnonzero(curvature_broken(points, kappa))
-    return bool(len(broken)) and polyline_length(points[: broken[0] + 1]) <= within_m
+    first = _first_broken(points, kappa)
+    return first is not None and polyline_length(points[: first + 1]) <= within_m
 
 
 def _broken_near_end(points: FloatArray, kappa: float, within_m: float) -> bool:
     """Whether the polyline breaks the curvature bound `kappa` somewhere, and only within `within_m` of its end."""
-    broken = 1 + np.flatnonzero(curvature_broken(points, kappa))
-    return bool(len(broken)) and polyline_length(points[broken[0]:]) <= within_m
+    first = _first_broken(points, kappa)
+    return first is not None and polyline_length(points[first:]) <= within_m
+
+
+def _first_broken(points: FloatArray, kappa: float) -> int | None:
+    """The first point at which the polyline breaks the curvature bound `kappa`, None where it keeps it."""
+    broken = np.flatnonzero(curvature_broken(points, kappa))
+    return None if not len(broken) else 1 + int(broken[0])
 
 
 def _approaches(goal: FloatArray, ellipses: list[Ellipse], bounds_min: FloatArray, bounds_max: FloatArray, *,
