@@ -30,29 +30,20 @@ import numpy as np
 
 from schemas.occupancy import OccupancyGrid
 from services.geometry import FloatArray
-from services.planner.lattice import ToGo, search
+from services.planner.lattice import ToGo, through
 
 _SAMPLE_M = 0.02  # points along a chord at most this far apart are tested
-_ONWARD_DIRECTIONS = 16  # directions round a goal the way on to the next is chosen among
-# The weight on the distance left (`lattice.search`'s greed) of a search arriving any way round: along a
-# long corridor the lattice's paths run a few per cent longer than the coarse grid's distance, and
-# unweighted the search takes every pose within that slack before it reaches the goal. A search arriving
-# facing a given way is not weighted: its way in may go round the goal, which a search drawn to the goal
-# runs out of poses before it takes.
-_GREED = 1.1
 
 
 def drivable_path(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, goals: FloatArray, radius_m: float,
                   margin_m: float, spacing_m: float, bounds_min: FloatArray, bounds_max: FloatArray,
                   max_nodes: int = 3000, to_go: Callable[[FloatArray], ToGo] | None = None) -> list[FloatArray] | None:
-    """Legs from the start, leaving along its heading, through `goals` in order, each leaving its goal the
-    way the one before arrived: points at most `spacing_m` apart, along forward arcs of `radius_m` and
-    straight runs, every point at least `margin_m` from every blocked cell of `grid`. A goal with another
-    after it is arrived at facing within a right angle of the way on (`_onward`) where the search finds
-    such an arrival, else any way round, as the last goal is. Each leg is searched within `max_nodes`
-    poses; the legs found before the first that is not, None if that is the first. `to_go(goal)`: the
-    distance left from points to the goal, round the walls (`CoarseGrid.distances_to`), which the search is
-    ordered by (None: the straight distance, which leads it into every room on the way)."""
+    """Legs from the start, leaving along its heading, through `goals` in order (`lattice.through`): points
+    at most `spacing_m` apart, along forward arcs of `radius_m` and straight runs, every point at least
+    `margin_m` from every blocked cell of `grid`; None if not even the first leg is found within
+    `max_nodes` poses. `to_go(goal)`: the distance left from points to the goal, round the walls
+    (`CoarseGrid.distances_to`), which the search is ordered by (None: the straight distance, which leads
+    it into every room on the way)."""
     needed = margin_m + 0.5 * _SAMPLE_M
     res = grid.resolution_m
     rows, cols = grid.shape
@@ -77,31 +68,5 @@ def drivable_path(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float,
         points = starts[chord] + fraction[:, None] * (ends - starts)[chord]
         return np.logical_and.reduceat(clearance_ok(points), first)
 
-    goals = np.asarray(goals, dtype=float).reshape(-1, 2)
-    ways = [None if to_go is None else to_go(goal) for goal in goals]
-    legs: list[FloatArray] = []
-    at, heading = np.asarray(start, dtype=float), heading_rad
-    for k, goal in enumerate(goals):
-        # An arrival any way round may face a wall with no room to turn on to the next goal.
-        facings = [None] if k + 1 == len(goals) else [_onward(goal, goals[k + 1], ways[k + 1], radius_m), None]
-        for facing in facings:
-            leg = search(start=at, heading_rad=heading, target=goal, facing=facing, clear=clear,
-                         bounds_min=bounds_min, bounds_max=bounds_max, radius=radius_m, spacing_m=spacing_m,
-                         reach_m=math.inf, max_nodes=max_nodes, to_go=ways[k],
-                         greed=_GREED if facing is None else 1.0, facing_within=0.5 * math.pi)
-            if leg is not None:
-                break
-        if leg is None:
-            break
-        legs.append(leg)
-        at, heading = leg[-1], math.atan2(*(leg[-1] - leg[-2])[::-1])
-    return legs or None
-
-
-def _onward(goal: FloatArray, after: FloatArray, to_go: ToGo | None, radius_m: float) -> float:
-    """The direction from `goal` on to the goal `after` it: of the points a turning radius round it, towards
-    the one with the least distance left (`to_go`, or the straight distance)."""
-    angles = 2.0 * math.pi * np.arange(_ONWARD_DIRECTIONS) / _ONWARD_DIRECTIONS
-    points = goal + radius_m * np.column_stack([np.cos(angles), np.sin(angles)])
-    left = np.hypot(*(after - points).T) if to_go is None else to_go(points)
-    return float(angles[int(np.argmin(left))])
+    return through(start=start, heading_rad=heading_rad, goals=goals, clear=clear, bounds_min=bounds_min,
+                   bounds_max=bounds_max, radius=radius_m, spacing_m=spacing_m, max_nodes=max_nodes, to_go=to_go)

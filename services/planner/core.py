@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length
-from services.planner.lattice import WIDER, lead_in, turning_arc
+from services.planner.lattice import WIDER, lead_in, through, turning_arc
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -38,6 +38,7 @@ _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance
 # the first subproblem's curvature budget, κ (0.95 h)², is stricter than they are (measured: each
 # iteration shortened the steps of r01's loop, docs/maps.md stop 44, and it ended with its curvature unmet).
 _SEED_REFINE = dict(window_radii=None, step_shrink=0.99)
+_THROUGH_NODES = 3000  # poses a leg of the search through the goals takes at most
 
 
 @dataclass(frozen=True)
@@ -218,6 +219,16 @@ def _broken_near_end(points: FloatArray, kappa: float, within_m: float) -> bool:
     return first is not None and polyline_length(points[first:]) <= within_m
 
 
+def _broken_at_a_goal(plan: PathPlan, kappa: float, within_m: float) -> bool:
+    """Whether the plan first breaks the curvature bound `kappa` within `within_m` (along it) of a goal
+    before its last."""
+    first = _first_broken(plan.points, kappa)
+    if first is None or len(plan.goal_indices) < 2:
+        return False
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(plan.points, axis=0), axis=1))])
+    return bool(np.any(np.abs(along[list(plan.goal_indices[:-1])] - along[first]) <= within_m))
+
+
 def _first_broken(points: FloatArray, kappa: float) -> int | None:
     """The first point at which the polyline breaks the curvature bound `kappa`, None where it keeps it."""
     broken = np.flatnonzero(curvature_broken(points, kappa))
@@ -279,7 +290,9 @@ def plan_path(
     beside a wall the route rounds tightly), the goal is approached in a straight line from a turning
     radius away, from each direction that leaves clear, the shortest such route first: the refinement
     is local, and may need to come in from elsewhere than the route did (swinging wide of the corner
-    and back). Once `late()` (the
+    and back). Where the best breaks it first within two turning radii of a goal before the last (the
+    route turns back there, and the curve must loop through the goal), a path over the car's own turns
+    through the goals (`lattice.through`, on the ellipses) is refined as a seed is. Once `late()` (the
     replan was called off), no further route is tried after one that refined clear. A plan that
     `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
     caller to plan again among more obstacles, never to publish: any route refined clear, and the
@@ -359,15 +372,15 @@ def plan_path(
                             entered_m=entered_m)
         return best
 
-    if route_seed is not None:
-        *before, last = route_seed
-        # The last leg's last pose on to its goal and any after it, as the route search joins it.
+    def seeded(seed: list[FloatArray]) -> PathPlan | None:
+        """The seed's legs refined whole, the route going on from the last goal they reach (its last leg's
+        last pose on to that goal and any after it, as the route search joins it)."""
+        *before, last = seed
         legs = search(goals[len(before):], lead=last[:-1])
-        if legs is not None:
-            handed, _ = refined(before + legs, how=replace(settings, **_SEED_REFINE))
-            if handed is not None:
-                return handed
-        return verdict()
+        return None if legs is None else refined(before + legs, how=replace(settings, **_SEED_REFINE))[0]
+
+    if route_seed is not None:
+        return seeded(route_seed) or verdict()
     first_leg = None  # the first route's, where the car has a heading
     for attempt, (lead, extra_m) in enumerate(tries):
         legs = search(goals, lead=lead, extra_m=extra_m)
@@ -418,6 +431,17 @@ def plan_path(
                     return handed
                 if enough:
                     break
+        if (best is not None and best.status == "ok" and heading_rad is not None and not late()
+                and best_slack > 1e-6 and _broken_at_a_goal(best, 1.0 / radius, 2.0 * radius)):
+            # The route turns back at a goal before the last: the curve must loop through it, which no
+            # refinement of a route that goes there and back bends into. A path over the car's own turns
+            # through the goals, each arrived at facing the way on where that is found.
+            seed = through(start=start, heading_rad=heading_rad, goals=goals,
+                           clear=lambda a, b: stack.segment_levels(a, b).min(axis=1, initial=np.inf) >= settings.level,
+                           bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
+                           spacing_m=settings.spacing_m, max_nodes=_THROUGH_NODES)
+            if seed is not None and (handed := seeded(seed)) is not None:
+                return handed
     return verdict()
 
 

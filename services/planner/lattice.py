@@ -33,6 +33,14 @@ _TURN_IN = 4.0  # arriving any way round: a pose this many radii from the target
 # (`services.planner.core`), so that a hall those do not fit in may fit it.
 WIDER = 1.05
 
+_ONWARD_DIRECTIONS = 16  # directions round a goal the way on to the next is chosen among (`through`)
+# The weight on the distance left (`search`'s greed) of a search arriving any way round (`through`): along
+# a long corridor the lattice's paths run a few per cent longer than a grid's distance round the walls, and
+# unweighted the search takes every pose within that slack before it reaches the goal. A search arriving
+# facing a given way is not weighted: its way in may go round the goal, which a search drawn to the goal
+# runs out of poses before it takes.
+_GREED = 1.1
+
 Clear = Callable[[FloatArray, FloatArray], np.ndarray]  # (starts, ends) → whether each chord is clear
 ToGo = Callable[[FloatArray], FloatArray]  # points → the distance left from each to the target
 
@@ -58,6 +66,45 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
     return search(start=start, heading_rad=heading_rad, target=target, facing=math.atan2(d[1], d[0]), clear=clear,
                   bounds_min=bounds_min, bounds_max=bounds_max, radius=radius, spacing_m=spacing_m,
                   reach_m=float(np.linalg.norm(target - start)) + 2.0 * radius, max_nodes=max_nodes)
+
+
+def through(*, start: FloatArray, heading_rad: float, goals: FloatArray, clear: Clear, bounds_min: FloatArray,
+            bounds_max: FloatArray, radius: float, spacing_m: float, max_nodes: int,
+            to_go: Callable[[FloatArray], ToGo] | None = None) -> list[FloatArray] | None:
+    """Legs from the start, leaving along its heading, through `goals` in order (`search`'s points), each
+    leaving its goal the way the one before arrived. A goal with another after it is arrived at facing
+    within a right angle of the way on (`_onward`) where the search finds such an arrival, else any way
+    round, as the last goal is. Each leg is searched within `max_nodes` poses; the legs found before the
+    first that is not, None if that is the first. `to_go(goal)`: the distance left from points to the
+    goal (None: the straight distance)."""
+    goals = np.asarray(goals, dtype=float).reshape(-1, 2)
+    ways = [None if to_go is None else to_go(goal) for goal in goals]
+    legs: list[FloatArray] = []
+    at, heading = np.asarray(start, dtype=float), heading_rad
+    for k, goal in enumerate(goals):
+        # An arrival any way round may face a wall with no room to turn on to the next goal.
+        facings = [None] if k + 1 == len(goals) else [_onward(goal, goals[k + 1], ways[k + 1], radius), None]
+        for facing in facings:
+            leg = search(start=at, heading_rad=heading, target=goal, facing=facing, clear=clear,
+                         bounds_min=bounds_min, bounds_max=bounds_max, radius=radius, spacing_m=spacing_m,
+                         reach_m=math.inf, max_nodes=max_nodes, to_go=ways[k],
+                         greed=_GREED if facing is None else 1.0, facing_within=0.5 * math.pi)
+            if leg is not None:
+                break
+        if leg is None:
+            break
+        legs.append(leg)
+        at, heading = leg[-1], math.atan2(*(leg[-1] - leg[-2])[::-1])
+    return legs or None
+
+
+def _onward(goal: FloatArray, after: FloatArray, to_go: ToGo | None, radius: float) -> float:
+    """The direction from `goal` on to the goal `after` it: of the points a turning radius round it, towards
+    the one with the least distance left (`to_go`, or the straight distance)."""
+    angles = 2.0 * math.pi * np.arange(_ONWARD_DIRECTIONS) / _ONWARD_DIRECTIONS
+    points = goal + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    left = np.hypot(*(after - points).T) if to_go is None else to_go(points)
+    return float(angles[int(np.argmin(left))])
 
 
 def search(*, start: FloatArray, heading_rad: float, target: FloatArray, facing: float | None, clear: Clear,

@@ -644,3 +644,24 @@ def test_a_car_2_cm_from_an_obstacle_and_facing_it_is_told_why_no_route_refines_
     reason = why_no_path(plan, None, max_curvature=1.0)
     assert reason.startswith("no refined route stays clear of the ellipses (each enters one within")
     assert "within a turning radius (1.00 m) of the start" in reason and "never reverses" in reason
+
+
+def test_a_goal_the_next_lies_back_from_is_passed_round_a_loop():
+    """Two goals on the car's way, the second 2 m back from the first, a disc beside them: the route goes
+    to the first and turns straight back, which no refinement of it bends into a loop. A path over the
+    car's turns through both goals is refined instead, and its curve verifies through both in order."""
+    from services.planner.core import plan_until_verified
+    from services.smoother.core import smooth
+
+    goals = np.array([[6.0, 0.0], [4.0, 0.0]])
+    disc = [Ellipse.circle(center=[5.0, -2.5], radius=1.0)]
+
+    def smooth_fn(points):
+        return smooth(points, ellipses=disc, max_curvature=1.0, heading_rad=0.0, goals=goals, goal_tolerance_m=0.1,
+                      **BOX)
+
+    plan, smoothed = plan_until_verified(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, ellipses=disc,
+                                         max_curvature=1.0, **BOX, settings=RefineSettings(), repairs=(),
+                                         smooth_fn=smooth_fn)
+    assert plan.status == "ok" and smoothed.verification.ok, smoothed.verification.reason
+    assert np.allclose(plan.points[list(plan.goal_indices)], goals)
