@@ -256,3 +256,22 @@ def test_a_run_to_a_goal_just_beyond_the_margin_from_a_wall_reaches_it(tmp_path)
     run, scenario = _room_run(tmp_path, (4.0, 0.05 + 0.45 + 0.015))
     assert run.status == "reached" and run.goals_reached == 1
     assert_car_like_and_clear(run, scenario)
+
+
+@pytest.mark.slow
+def test_a_waypoint_the_next_lies_back_from_is_driven_through_round_a_loop(shared_dir, tmp_path):
+    """Three waypoints on Nav2's depot map; from the second, between two pillars, the way on to the third
+    turns back. Every plan through the goals ahead broke the curvature bound there, and the run ended
+    `no_path` at goal 1 of 3; the planner's search over the car's turns through the goals loops round."""
+    doc = json.loads((shared_dir / "map-scenarios" / "depot-2.json").read_text())
+    doc["obstacles"][0]["map"] = str(shared_dir / "maps" / "depot.yaml")
+    doc.update(name="depot-waypoints", start={"x": 7.8704, "y": 14.1642, "theta": -0.9279},
+               goals=[[11.7000, 4.3956], [23.8756, 12.2528], [17.5222, 14.0241]])
+    doc.pop("bounds", None)
+    (tmp_path / "waypoints.json").write_text(json.dumps(doc))
+    scenario = load_scenario(tmp_path / "waypoints.json")
+    proc = cvxnav_run(str(tmp_path / "waypoints.json"), "--out", "run.json", cwd=tmp_path, timeout_s=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = RunFile.read(tmp_path / "run.json")
+    assert run.status == "reached" and run.goals_reached == 3
+    assert_car_like_and_clear(run, scenario)
