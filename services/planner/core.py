@@ -374,7 +374,8 @@ def plan_path(
 
     def seeded(seed: list[FloatArray]) -> PathPlan | None:
         """The seed's legs refined whole, the route going on from the last goal they reach (its last leg's
-        last pose on to that goal and any after it, as the route search joins it)."""
+        last pose on to that goal and any after it, as the route search joins it): kept as the best if it
+        meets the bound better (`refined`); the plan to hand back at once, if it meets others."""
         *before, last = seed
         legs = search(goals[len(before):], lead=last[:-1])
         return None if legs is None else refined(before + legs, how=replace(settings, **_SEED_REFINE))[0]

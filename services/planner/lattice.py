@@ -1,5 +1,6 @@
 """Paths found by a search over the car's own turns: a lead-in where the planner's single-turn lead-ins
-fail, and a whole path where its routes do (`services.maps.seed`).
+fail, and legs through the goals where its routes do (`through`: on the map, `services.maps.seed`; on the
+ellipses, where a route turns back at a goal, `services.planner.core`).
 
 The route search is blind to the heading. Where the route leaves the start in another direction than
 the car faces, `services.planner.core` hands the refinement lead-ins of one turn each (straight on, a
@@ -13,6 +14,7 @@ distance left to the target, within `reach_m` of the start. It ends at the targe
 facing along a given direction or facing it with a clear straight run in; or, arriving any way round,
 from a pose that turns at the same radius until it faces the target and runs straight in. It is a
 heuristic, not complete: a path where it finds one, None where it does not (within `max_nodes` poses).
+`through` chains it goal by goal, each leg from where the one before arrived.
 """
 
 from __future__ import annotations
