@@ -538,6 +538,12 @@ def polyline_length(points: ArrayLike) -> float:
     return float(np.sum(np.linalg.norm(np.diff(z, axis=0), axis=1)))
 
 
+def arc_lengths(points: ArrayLike) -> FloatArray:
+    """The length along the polyline to each of its points (0 at the first)."""
+    z = np.asarray(points, dtype=float)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
+
+
 def joined_legs(legs: Sequence[ArrayLike]) -> FloatArray:
     """Legs that each start where the one before ends, as one polyline (each joint once)."""
     return np.vstack([np.asarray(legs[0], dtype=float), *(np.asarray(leg, dtype=float)[1:] for leg in legs[1:])])

@@ -32,6 +32,7 @@ from schemas.scenario import Scenario
 from services.drive.controller import GoalTracker, PurePursuit
 from services.drive.guard import PathGuard, ahead
 from services.drive.vehicle import VehicleLimits, VehicleState, step
+from services.geometry import arc_lengths
 from sim.sensor import RangeSensor
 from sim.world import World
 
@@ -331,7 +332,7 @@ class SimCore:
         if self.backouts >= self.config.max_backouts or len(self.tracks) < 2:
             return False
         poses = np.array([self._pose(), *self.tracks[::-1]])
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))])
+        along = arc_lengths(poses[:, :2])
         end = min(int(np.searchsorted(along, self.backout_m)), len(poses) - 1)
         half = 0.5 * self.limits.wheelbase_m
         theta = poses[: end + 1, 2]

@@ -72,7 +72,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, resample_polyline
+from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, joined_legs, resample_polyline
 from schemas.occupancy import OccupancyGrid
 from services.ellipsoids.grid_cover import GridCover, GridPiece, IntArray, Tile
 from services.planner.core import MeetsOthers, PathPlan
@@ -244,7 +244,7 @@ class CoarseGrid:
         corridor = self.grid.to_world(centres(np.flatnonzero(near)) * self.s)
         mask = np.zeros(self.passable.shape, dtype=bool)
         mask.flat[nodes[near]] = True
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        along = arc_lengths(points)
         at_waypoints = along[np.searchsorted(kept, ends)]
         return CoarseRoute("ok", points, corridor, length_m=total, cells=mask,
                            leg_lengths_m=tuple(np.diff(at_waypoints).tolist()))

@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, joined_legs, polyline_length
+from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, joined_legs, polyline_length
 from services.planner.lattice import WIDER, lead_in, through, turning_arc
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
@@ -184,7 +184,7 @@ def _turns(start: FloatArray, heading_rad: float, leg: FloatArray, *, radius: fl
     turning radius on): the short way round, then the long way (a loop, which a corridor too narrow to
     make the short turn in may leave room for). The route search is blind to the heading, and the
     refinement, local, keeps the side of the turn it is handed."""
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(leg, axis=0), axis=1))])
+    along = arc_lengths(leg)
     ahead = leg[min(int(np.searchsorted(along, radius)), len(leg) - 1)] - start
     left = (math.atan2(ahead[1], ahead[0]) - heading_rad) % (2.0 * math.pi)
     out = []
@@ -225,7 +225,7 @@ def _broken_at_a_goal(plan: PathPlan, kappa: float, within_m: float) -> bool:
     first = _first_broken(plan.points, kappa)
     if first is None or len(plan.goal_indices) < 2:
         return False
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(plan.points, axis=0), axis=1))])
+    along = arc_lengths(plan.points)
     return bool(np.any(np.abs(along[list(plan.goal_indices[:-1])] - along[first]) <= within_m))
 
 

@@ -25,7 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from services.geometry import EllipseStack, FloatArray
+from services.geometry import EllipseStack, FloatArray, arc_lengths
 
 _TURN_RAD = math.pi / 8  # each motion turns by this much (or not at all)
 _HEADINGS = 16  # 2π / _TURN_RAD: the headings a search reaches, from the start's
@@ -55,7 +55,7 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
     the route there; None if none is found within that point's distance plus two radii of the start, or
     the route is shorter than `ahead_m`. Every chord keeps at least `level` from each ellipse of `stack`
     and stays within the bounds."""
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
+    along = arc_lengths(route)
     if ahead_m >= along[-1]:
         return None
     at = int(np.searchsorted(along, ahead_m, side="right")) - 1  # the segment holding the point

@@ -51,7 +51,7 @@ import numpy as np
 import shapely
 from scipy import sparse
 
-from services.geometry import Ellipse, EllipseStack, FloatArray, polyline_length
+from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, polyline_length
 
 _OK = ("optimal", "optimal_inaccurate")  # cvxpy's status strings
 
@@ -567,7 +567,7 @@ def refine(
     # The margin above level 1 gives the smoothed curve room; a robot that has just sensed an obstacle
     # close ahead cannot give that room within its first turning radius, so there the plan only has to
     # stay outside (the smoother still proves the continuous curve clear).
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(z, axis=0), axis=1))])
+    along = arc_lengths(z)
     first_turn = (along < 1.0 / max_curvature) & at_robot
     level = np.where(first_turn, min(settings.start_level, settings.level), settings.level)
     # Clarabel's first solve keeps the step and trust-region bounds over that stretch (`_ClarabelOnDemand`),
@@ -850,7 +850,7 @@ def _held_by_its_ends(z: FloatArray, a: int, b: int, points: FloatArray, reach_m
     rather than the turn shaped the path there. (Distances to the route's polyline: a window that starts
     at the robot may begin from a drive onto the route, `_driven_onto`, whose points are not the route's.)"""
     off = shapely.distance(shapely.points(points), shapely.LineString(z[a : b + 1]))
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    along = arc_lengths(points)
     ends = np.zeros(len(points), dtype=bool)
     if a > 0:
         ends |= along <= 0.5 * reach_m

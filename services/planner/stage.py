@@ -61,7 +61,7 @@ from schemas.messages import Ellipsoids, Goals, RawPath, RobotState
 from schemas.scenario import Scenario
 from services.contract import Notice, Outputs, StageInputError, StateError
 from services.convert import answer_header, ellipse_to_msg, ellipses_from_msgs
-from services.geometry import Ellipse, EllipseStack, FloatArray, keep_out_scales, polyline_length
+from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, keep_out_scales, polyline_length
 from services.limits import Reach
 from services.planner.core import PathPlan, goals_ahead, intersected, margin_ladder, plan_within
 from services.planner.refine import RefineSettings, SolverFailure, refine
@@ -619,7 +619,7 @@ class PlannerStage:
         # Only the stretch up to the last segment the new ellipses invalidate, and a rejoin distance
         # past it, is re-optimised; the rest of the plan is kept. The kept rest's first step is pinned
         # too (a second leg), so the curvature bound holds across the join.
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ahead, axis=0), axis=1))])
+        along = arc_lengths(ahead)
         bad = rows[entering]  # segments the new ellipses invalidate
         join = int(np.searchsorted(along, along[bad.max() + 1] + config.repair_rejoin_m)) if len(bad) else len(ahead)
         if join + 1 < ends[0]:
