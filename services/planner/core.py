@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, joined_legs, polyline_length
-from services.planner.lattice import WIDER, lead_in, through, turning_arc
+from services.planner.lattice import WIDER, clear_of, lead_in, through, turning_arc
 from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
@@ -438,7 +438,7 @@ def plan_path(
             # refinement of a route that goes there and back bends into. A path over the car's own turns
             # through the goals, each arrived at facing the way on where that is found.
             seed = through(start=start, heading_rad=heading_rad, goals=goals,
-                           clear=lambda a, b: stack.segment_levels(a, b).min(axis=1, initial=np.inf) >= settings.level,
+                           clear=clear_of(stack, settings.level),
                            bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
                            spacing_m=settings.spacing_m, max_nodes=_THROUGH_NODES)
             if seed is not None and (handed := seeded(seed)) is not None:

@@ -61,13 +61,19 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
     at = int(np.searchsorted(along, ahead_m, side="right")) - 1  # the segment holding the point
     d = route[at + 1] - route[at]
     target = route[at] + (ahead_m - along[at]) / (along[at + 1] - along[at]) * d
+    return search(start=start, heading_rad=heading_rad, target=target, facing=math.atan2(d[1], d[0]),
+                  clear=clear_of(stack, level), bounds_min=bounds_min, bounds_max=bounds_max, radius=radius,
+                  spacing_m=spacing_m, reach_m=float(np.linalg.norm(target - start)) + 2.0 * radius,
+                  max_nodes=max_nodes)
+
+
+def clear_of(stack: EllipseStack, level: float) -> Clear:
+    """The chord test that keeps at least `level` from each ellipse of `stack` (exact on each segment)."""
 
     def clear(starts: FloatArray, ends: FloatArray) -> np.ndarray:
         return stack.segment_levels(starts, ends).min(axis=1, initial=np.inf) >= level
 
-    return search(start=start, heading_rad=heading_rad, target=target, facing=math.atan2(d[1], d[0]), clear=clear,
-                  bounds_min=bounds_min, bounds_max=bounds_max, radius=radius, spacing_m=spacing_m,
-                  reach_m=float(np.linalg.norm(target - start)) + 2.0 * radius, max_nodes=max_nodes)
+    return clear
 
 
 def through(*, start: FloatArray, heading_rad: float, goals: FloatArray, clear: Clear, bounds_min: FloatArray,
