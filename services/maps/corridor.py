@@ -166,20 +166,24 @@ class CoarseGrid:
         `point`'s, among the passable cells (∞ where none joins them): the distance left to go that a search
         over the car's own turns is ordered by (`services.maps.seed`), which sees the walls on the way."""
         nodes, graph = self._nodes()
-        g = self.grid.to_grid(np.reshape(point, (1, 2))) / self.s + 1.0
-        cell = int(np.floor(g[0, 1])) * self.nc + int(np.floor(g[0, 0]))
+        cell = int(self._coarse_index(np.reshape(point, (1, 2)))[0])
         at = int(np.searchsorted(nodes, cell))
         dist = np.full(self.passable.size, np.inf)
         if at < len(nodes) and nodes[at] == cell:
             dist[nodes] = dijkstra(graph, indices=at)
 
         def distance(points: FloatArray) -> FloatArray:
-            g = self.grid.to_grid(points) / self.s + 1.0
-            a = np.clip(np.floor(g[:, 0]).astype(int), 0, self.nc - 1)
-            b = np.clip(np.floor(g[:, 1]).astype(int), 0, self.nr - 1)
-            return dist[b * self.nc + a]
+            return dist[self._coarse_index(points)]
 
         return distance
+
+    def _coarse_index(self, points: FloatArray) -> IntArray:
+        """Each world point's coarse cell (counting the ring, clipped to the grid) as an index into the
+        flattened coarse grid: the numbering of `_nodes`."""
+        g = self.grid.to_grid(points) / self.s + 1.0
+        a = np.clip(np.floor(g[:, 0]).astype(int), 0, self.nc - 1)
+        b = np.clip(np.floor(g[:, 1]).astype(int), 0, self.nr - 1)
+        return b * self.nc + a
 
     def route(self, waypoints: FloatArray, *, slack: float) -> CoarseRoute:
         """The shortest 16-connected path through `waypoints` (start, goals) in order, and the corridor: for each leg
@@ -187,7 +191,6 @@ class CoarseGrid:
         most `slack` longer — a route round the other side of an obstacle, hardly longer, is in it too
         (the graph's metric is up to 2.7 % off the Euclidean one)."""
         g = self.grid.to_grid(waypoints) / self.s + 1.0  # coarse cell coordinates, counting the ring
-        wa, wb = np.floor(g[:, 0]).astype(int), np.floor(g[:, 1]).astype(int)
         names = ["start"] + [f"goal {k + 1}" for k in range(len(waypoints) - 1)]
         none = np.zeros((0, 2))
         for name, (row, col) in zip(names, self._cells(waypoints)):
@@ -199,7 +202,7 @@ class CoarseGrid:
                     f"no path to {name}: the map's cells ({self.grid.resolution_m:.2f} m) that may hold a point "
                     f"at clearance {self.margin_m:.3f} m do not join it to the start, so none exists"))
         nodes, graph = self._nodes()
-        targets = np.searchsorted(nodes, wb * self.nc + wa)
+        targets = np.searchsorted(nodes, self._coarse_index(waypoints))
         # Only cells a near-shortest path can use matter: the search from each leg's start stops at twice
         # the longest leg's straight length and a turn round a building (and goes on without a limit if
         # that misses a goal). The last goal's distances serve only its leg's corridor, cells within
