@@ -28,7 +28,7 @@ from services.planner.core import (
     MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
 )
 from services.maps.corridor import CoarseGrid, CorridorSettings, plan_in_corridor
-from services.maps.seed import drivable_path
+from services.maps.seed import drivable_paths
 from services.maps.start import hemmed_in
 from services.planner.lattice import WIDER
 from services.planner.refine import RefineSettings
@@ -157,17 +157,13 @@ def plan_scenario(scenario: Scenario, *, settings: PlanSettings = PlanSettings()
 def _drivable(scenario: Scenario, grid: OccupancyGrid, goals: np.ndarray, coarse: CoarseGrid, *,
               settings: PlanSettings) -> Iterator[list[np.ndarray]]:
     """Legs the car can drive, searched on the map, for the corridor's plans to go on from where they
-    fail (`services.maps.seed`), each searched when the plans from the one before have failed: to the
-    first goal, arriving any way round (the routes go on from it); then, with more goals, through them
-    all, each arrived at facing the way on where that is found (a goal the next lies back from)."""
-    for count in sorted({1, len(goals)}):
-        legs = drivable_path(grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goals=goals[:count],
-                             radius_m=WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
-                             margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
-                             bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max),
-                             to_go=coarse.distances_to)
-        if legs is not None:
-            yield legs
+    fail (`services.maps.seed`): the planning radius a little widened (`lattice.WIDER`), ordered by the
+    coarse grid's distance left."""
+    return drivable_paths(grid, start=scenario.start.xy, heading_rad=scenario.start.theta, goals=goals,
+                          radius_m=WIDER / (settings.refine.curvature_factor * scenario.max_curvature),
+                          margin_m=scenario.inflation_m, spacing_m=settings.refine.spacing_m,
+                          bounds_min=np.array(scenario.bounds.min), bounds_max=np.array(scenario.bounds.max),
+                          to_go=coarse.distances_to)
 
 
 def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,

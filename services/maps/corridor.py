@@ -53,8 +53,8 @@ what the query can use is built:
    are blind to the heading and the refinement is local, so a goal a little behind the car, a corner too
    tight for its turning radius, a way out on the other side of a pillar or a goal the next lies back
    from left no plan where the car could drive. The caller hands such paths one at a time (to the
-   first goal, then through them all: `cvxnav.plan`); when the plans from every one end unverified,
-   the answer (and its reason) is the plan before them.
+   first goal, then through them all: `services.maps.seed.drivable_paths`); when the plans from every
+   one end unverified, the answer (and its reason) is the plan before them.
 """
 
 from __future__ import annotations

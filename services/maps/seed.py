@@ -1,4 +1,4 @@
-"""A path the car can drive to its goal, searched on the map itself, for the planner to refine where
+"""Paths the car can drive to its goals, searched on the map itself, for the planner to refine where
 its own routes fail.
 
 The planner's route search is blind to the heading, and its refinement is local: where the shortest
@@ -23,7 +23,7 @@ where those bounds straddle the margin is the exact distance (`OccupancyGrid.cle
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -35,15 +35,18 @@ from services.planner.lattice import ToGo, through
 _SAMPLE_M = 0.02  # points along a chord at most this far apart are tested
 
 
-def drivable_path(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, goals: FloatArray, radius_m: float,
-                  margin_m: float, spacing_m: float, bounds_min: FloatArray, bounds_max: FloatArray,
-                  max_nodes: int = 3000, to_go: Callable[[FloatArray], ToGo] | None = None) -> list[FloatArray] | None:
-    """Legs from the start, leaving along its heading, through `goals` in order (`lattice.through`): points
-    at most `spacing_m` apart, along forward arcs of `radius_m` and straight runs, every point at least
-    `margin_m` from every blocked cell of `grid`; None if not even the first leg is found within
-    `max_nodes` poses. `to_go(goal)`: the distance left from points to the goal, round the walls
-    (`CoarseGrid.distances_to`), which the search is ordered by (None: the straight distance, which leads
-    it into every room on the way)."""
+def drivable_paths(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, goals: FloatArray, radius_m: float,
+                   margin_m: float, spacing_m: float, bounds_min: FloatArray, bounds_max: FloatArray,
+                   max_nodes: int = 3000,
+                   to_go: Callable[[FloatArray], ToGo] | None = None) -> Iterator[list[FloatArray]]:
+    """Legs from the start, leaving along its heading, each searched when the caller asks for the next:
+    to the first goal, arriving any way round (the caller's routes go on from it); then, with more goals,
+    through them all (`lattice.through`: each arrived at facing the way on where that is found). Points at
+    most `spacing_m` apart, along forward arcs of `radius_m` and straight runs, every point at least
+    `margin_m` from every blocked cell of `grid`; a search that finds not even its first leg within
+    `max_nodes` poses yields nothing. `to_go(goal)`: the distance left from points to the goal, round the
+    walls (`CoarseGrid.distances_to`), which the search is ordered by (None: the straight distance, which
+    leads it into every room on the way)."""
     needed = margin_m + 0.5 * _SAMPLE_M
     res = grid.resolution_m
     rows, cols = grid.shape
@@ -68,5 +71,10 @@ def drivable_path(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float,
         points = starts[chord] + fraction[:, None] * (ends - starts)[chord]
         return np.logical_and.reduceat(clearance_ok(points), first)
 
-    return through(start=start, heading_rad=heading_rad, goals=goals, clear=clear, bounds_min=bounds_min,
-                   bounds_max=bounds_max, radius=radius_m, spacing_m=spacing_m, max_nodes=max_nodes, to_go=to_go)
+    goals = np.asarray(goals, dtype=float).reshape(-1, 2)
+    for count in sorted({1, len(goals)}):
+        legs = through(start=start, heading_rad=heading_rad, goals=goals[:count], clear=clear,
+                       bounds_min=bounds_min, bounds_max=bounds_max, radius=radius_m, spacing_m=spacing_m,
+                       max_nodes=max_nodes, to_go=to_go)
+        if legs is not None:
+            yield legs

@@ -1,4 +1,4 @@
-"""`services.maps.seed.drivable_path`: legs the car can drive through its goals, searched on the grid itself."""
+"""`services.maps.seed.drivable_paths`: legs the car can drive through its goals, searched on the grid itself."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from schemas.occupancy import OccupancyGrid
 from services.drive.controller import menger_curvature
 from services.geometry import resample_polyline
 from services.maps.corridor import CoarseGrid
-from services.maps.seed import drivable_path
+from services.maps.seed import drivable_paths
 
 _RES = 0.05
 _MARGIN = 0.3
@@ -27,9 +27,12 @@ def _room(width_m: float, height_m: float, *, walls: list[tuple[float, float, fl
 
 
 def _legs(grid: OccupancyGrid, start, heading_rad: float, goals, **options):
+    """The last legs the search yields (through every goal, where found), None if it yields none."""
     lo, hi = grid.bounds()
-    return drivable_path(grid, start=np.array(start), heading_rad=heading_rad, goals=np.array(goals), radius_m=1.0,
-                         margin_m=_MARGIN, spacing_m=0.09, bounds_min=lo, bounds_max=hi, **options)
+    found = list(drivable_paths(grid, start=np.array(start), heading_rad=heading_rad, goals=np.array(goals),
+                                radius_m=1.0, margin_m=_MARGIN, spacing_m=0.09, bounds_min=lo, bounds_max=hi,
+                                **options))
+    return found[-1] if found else None
 
 
 def _path(grid: OccupancyGrid, start, heading_rad: float, goal):
