@@ -30,14 +30,14 @@ import numpy as np
 
 from schemas.occupancy import OccupancyGrid
 from services.geometry import FloatArray
-from services.planner.lattice import ToGo, through
+from services.planner.lattice import MAX_NODES, ToGo, through
 
 _SAMPLE_M = 0.02  # points along a chord at most this far apart are tested
 
 
 def drivable_paths(grid: OccupancyGrid, *, start: FloatArray, heading_rad: float, goals: FloatArray, radius_m: float,
                    margin_m: float, spacing_m: float, bounds_min: FloatArray, bounds_max: FloatArray,
-                   max_nodes: int = 3000,
+                   max_nodes: int = MAX_NODES,
                    to_go: Callable[[FloatArray], ToGo] | None = None) -> Iterator[list[FloatArray]]:
     """Legs from the start, leaving along its heading, each searched when the caller asks for the next:
     to the first goal, arriving any way round (the caller's routes go on from it); then, with more goals,

@@ -38,7 +38,6 @@ _SAME_POINT_M = 1e-6  # goals this close are one point (the smoother's tolerance
 # the first subproblem's curvature budget, κ (0.95 h)², is stricter than they are (measured: each
 # iteration shortened the steps of r01's loop, docs/maps.md stop 44, and it ended with its curvature unmet).
 _SEED_REFINE = dict(window_radii=None, step_shrink=0.99)
-_THROUGH_NODES = 3000  # poses a leg of the search through the goals takes at most
 
 
 @dataclass(frozen=True)
@@ -437,10 +436,9 @@ def plan_path(
             # The route turns back at a goal before the last: the curve must loop through it, which no
             # refinement of a route that goes there and back bends into. A path over the car's own turns
             # through the goals, each arrived at facing the way on where that is found.
-            seed = through(start=start, heading_rad=heading_rad, goals=goals,
-                           clear=clear_of(stack, settings.level),
+            seed = through(start=start, heading_rad=heading_rad, goals=goals, clear=clear_of(stack, settings.level),
                            bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
-                           spacing_m=settings.spacing_m, max_nodes=_THROUGH_NODES)
+                           spacing_m=settings.spacing_m)
             if seed is not None and (handed := seeded(seed)) is not None:
                 return handed
     return verdict()

@@ -30,6 +30,7 @@ from services.geometry import EllipseStack, FloatArray, arc_lengths
 _TURN_RAD = math.pi / 8  # each motion turns by this much (or not at all)
 _HEADINGS = 16  # 2π / _TURN_RAD: the headings a search reaches, from the start's
 _TURN_IN = 4.0  # arriving any way round: a pose this many radii from the target or nearer tries to turn in
+MAX_NODES = 3000  # poses a search (a lead-in, a leg through the goals) takes at most, by default
 # A searched path's arcs are this many planning radii: a little wider, for the refinement's curvature budget
 # (which its step floors make stricter), than the radius itself, and narrower than the single-turn lead-ins'
 # (`services.planner.core`), so that a hall those do not fit in may fit it.
@@ -49,7 +50,7 @@ ToGo = Callable[[FloatArray], FloatArray]  # points → the distance left from e
 
 def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: EllipseStack, bounds_min: FloatArray,
             bounds_max: FloatArray, radius: float, level: float, spacing_m: float, ahead_m: float,
-            max_nodes: int = 3000) -> FloatArray | None:
+            max_nodes: int = MAX_NODES) -> FloatArray | None:
     """Points from the start, at most `spacing_m` apart, along forward arcs of `radius` and straight
     stretches, ending at the point of `route` (a polyline from the start) `ahead_m` along it, facing along
     the route there; None if none is found within that point's distance plus two radii of the start, or
@@ -77,7 +78,7 @@ def clear_of(stack: EllipseStack, level: float) -> Clear:
 
 
 def through(*, start: FloatArray, heading_rad: float, goals: FloatArray, clear: Clear, bounds_min: FloatArray,
-            bounds_max: FloatArray, radius: float, spacing_m: float, max_nodes: int,
+            bounds_max: FloatArray, radius: float, spacing_m: float, max_nodes: int = MAX_NODES,
             to_go: Callable[[FloatArray], ToGo] | None = None) -> list[FloatArray] | None:
     """Legs from the start, leaving along its heading, through `goals` in order (`search`'s points), each
     leaving its goal the way the one before arrived. A goal with another after it is arrived at facing
