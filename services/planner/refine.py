@@ -811,13 +811,16 @@ def refine_in_windows(
 
 
 def _stuck(solved: dict[tuple[int, int], Refined], a: int, b: int) -> bool:
-    """Whether window a … b, widened from narrower windows whose curvature bound was unmet, met it no
-    better: its slack is not down by a tenth on the largest of theirs. Its turn is not one the pins made
-    (a car facing away from every route, with no room to turn round), and widening it further only
-    refines more of the route to the same slack, the whole route at last."""
-    inner = [r.curvature_slack for (lo, hi), r in solved.items()
-             if a <= lo and hi <= b and (lo, hi) != (a, b) and r.curvature_slack > _MET_SLACK]
-    return bool(inner) and solved[a, b].curvature_slack >= _STUCK_FACTOR * max(inner)
+    """Whether window a … b, widened from the windows it grew from (the widest of the narrower ones within
+    it whose curvature bound was unmet), met it no better: its slack is not down by a tenth on the largest
+    of theirs. Its turn is not one the pins made (a car facing away from every route, with no room to turn
+    round), and widening it further only refines more of the route to the same slack, the whole route at
+    last."""
+    inner = {(lo, hi): r.curvature_slack for (lo, hi), r in solved.items()
+             if a <= lo and hi <= b and (lo, hi) != (a, b) and r.curvature_slack > _MET_SLACK}
+    grew_from = [slack for (lo, hi), slack in inner.items()
+                 if not any(c <= lo and hi <= d and (c, d) != (lo, hi) for c, d in inner)]
+    return bool(grew_from) and solved[a, b].curvature_slack >= _STUCK_FACTOR * max(grew_from)
 
 
 def _merged(intervals: list[tuple[float, float]], *, gap: float) -> list[tuple[float, float]]:

@@ -665,3 +665,18 @@ def test_a_goal_the_next_lies_back_from_is_passed_round_a_loop():
                                          smooth_fn=smooth_fn)
     assert plan.status == "ok" and smoothed.verification.ok, smoothed.verification.reason
     assert np.allclose(plan.points[list(plan.goal_indices)], goals)
+
+
+def test_a_window_widened_to_no_better_slack_than_the_one_it_grew_from_is_not_widened_again():
+    """A window's slack 0.088, widened to 0.062, then to 0.060: the last is stuck, though it is well down on
+    the first narrow window's (a route that turns back at a goal, whose windows would otherwise widen to
+    the whole route at about the same slack)."""
+    from services.planner.refine import Refined, _stuck
+
+    def solved(slack: float) -> Refined:
+        return Refined(points=np.zeros((2, 2)), goal_indices=(1,), iterations=10, curvature_slack=slack)
+
+    windows = {(0, 95): solved(0.0), (118, 309): solved(0.088), (0, 351): solved(0.062)}
+    assert not _stuck(windows, 0, 351)  # down by nearly a third on the window it grew from
+    assert _stuck({**windows, (0, 479): solved(0.060)}, 0, 479)
+    assert not _stuck({**windows, (0, 479): solved(0.050)}, 0, 479)
