@@ -289,9 +289,12 @@ def plan_path(
     beside a wall the route rounds tightly), the goal is approached in a straight line from a turning
     radius away, from each direction that leaves clear, the shortest such route first: the refinement
     is local, and may need to come in from elsewhere than the route did (swinging wide of the corner
-    and back). Where the best breaks it first within two turning radii of a goal before the last (the
-    route turns back there, and the curve must loop through the goal), a path over the car's own turns
-    through the goals (`lattice.through`, on the ellipses) is refined as a seed is. Once `late()` (the
+    and back). Where the first route's refinement breaks it first within two turning radii of a goal
+    before the last (the route turns back there, and the curve must loop through the goal), a path over
+    the car's own turns through the goals (`lattice.through`, on the ellipses) is refined as a seed is,
+    before any other route: a lead-in at the start changes nothing at the goal, and a route round
+    enlarged ellipses seldom comes in to it less sharply, each refined at the first one's cost (where
+    the first does not break it there, the best of them all is tested so at the end). Once `late()` (the
     replan was called off), no further route is tried after one that refined clear. A plan that
     `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
     caller to plan again among more obstacles, never to publish: any route refined clear, and the
@@ -379,6 +382,23 @@ def plan_path(
         legs = search(goals[len(before):], lead=last[:-1])
         return None if legs is None else refined(before + legs, how=replace(settings, **_SEED_REFINE))[0]
 
+    looped = False
+
+    def loop_through() -> PathPlan | None:
+        """Where the best plan first breaks the bound within two turning radii of a goal before the last (the
+        route turns back there, and the curve must loop through the goal, which no refinement of a route
+        that goes there and back bends into): a path over the car's own turns through the goals, each
+        arrived at facing the way on where that is found, refined as a seed is (`seeded`). Tried once."""
+        nonlocal looped
+        if (looped or best is None or best.status != "ok" or heading_rad is None or late() or best_slack <= 1e-6
+                or not _broken_at_a_goal(best, 1.0 / radius, 2.0 * radius)):
+            return None
+        looped = True
+        seed = through(start=start, heading_rad=heading_rad, goals=goals, clear=clear_of(stack, settings.level),
+                       bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
+                       spacing_m=settings.spacing_m)
+        return None if seed is None else seeded(seed)
+
     if route_seed is not None:
         return seeded(route_seed) or verdict()
     first_leg = None  # the first route's, where the car has a heading
@@ -398,6 +418,9 @@ def plan_path(
                                                      step_m=settings.spacing_m)
                       if _clear(turn, ellipses, bounds_min, bounds_max, level=settings.level)]
         handed, enough = refined(legs)
+        if handed is None and attempt == 0:  # a turn back at a goal: before the other routes
+            handed = loop_through()
+            enough = enough or best_slack <= 1e-6
         if handed is not None:
             return handed
         if enough:
@@ -431,16 +454,8 @@ def plan_path(
                     return handed
                 if enough:
                     break
-        if (best is not None and best.status == "ok" and heading_rad is not None and not late()
-                and best_slack > 1e-6 and _broken_at_a_goal(best, 1.0 / radius, 2.0 * radius)):
-            # The route turns back at a goal before the last: the curve must loop through it, which no
-            # refinement of a route that goes there and back bends into. A path over the car's own turns
-            # through the goals, each arrived at facing the way on where that is found.
-            seed = through(start=start, heading_rad=heading_rad, goals=goals, clear=clear_of(stack, settings.level),
-                           bounds_min=bounds_min, bounds_max=bounds_max, radius=WIDER * radius,
-                           spacing_m=settings.spacing_m)
-            if seed is not None and (handed := seeded(seed)) is not None:
-                return handed
+        if (handed := loop_through()) is not None:
+            return handed
     return verdict()
 
 

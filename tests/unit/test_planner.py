@@ -667,6 +667,28 @@ def test_a_goal_the_next_lies_back_from_is_passed_round_a_loop():
     assert np.allclose(plan.points[list(plan.goal_indices)], goals)
 
 
+def test_a_turn_back_at_a_goal_is_looped_round_before_any_other_route_is_refined(monkeypatch):
+    """As above: the first route's refinement breaks the bound at the first goal, where it turns back. No
+    lead-in at the start changes that turn, and refining a route round enlarged ellipses costs as much as
+    the first: the loop through the goals is refined next, and with its bound met nothing else is."""
+    import services.planner.core as core
+
+    refined = []
+
+    def counted(**kwargs):
+        refined.append(kwargs["legs"])
+        return refine(**kwargs)
+
+    refine = core.refine
+    monkeypatch.setattr(core, "refine", counted)
+    goals = np.array([[6.0, 0.0], [4.0, 0.0]])
+    disc = [Ellipse.circle(center=[5.0, -2.5], radius=1.0)]
+    plan = plan_path(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, ellipses=disc, max_curvature=1.0,
+                     **BOX)
+    assert plan.status == "ok" and np.allclose(plan.points[list(plan.goal_indices)], goals)
+    assert len(refined) == 2  # the route there and back, then the loop
+
+
 def test_a_window_widened_to_no_better_slack_than_the_one_it_grew_from_is_not_widened_again():
     """A window's slack 0.088, widened to 0.062, then to 0.060: the last is stuck, though it is well down on
     the first narrow window's (a route that turns back at a goal, whose windows would otherwise widen to
