@@ -559,8 +559,10 @@ def refine(
                                  max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
     stack = EllipseStack.of(ellipses)
     kappa = settings.curvature_factor * max_curvature
+    drive_m = 0.0
     if at_robot and heading_rad is not None:
-        legs = [_driven_onto(legs[0], heading_rad, stack=stack, max_curvature=kappa, settings=settings), *legs[1:]]
+        first, drive_m = _driven_onto(legs[0], heading_rad, stack=stack, max_curvature=kappa, settings=settings)
+        legs = [first, *legs[1:]]
     total = sum(polyline_length(leg) for leg in legs)
     n = _bucket(int(np.ceil(total / settings.spacing_m)) + 1)
     z, goal_indices = resample_legs(legs, n=n)
@@ -570,9 +572,11 @@ def refine(
     along = arc_lengths(z)
     first_turn = (along < 1.0 / max_curvature) & at_robot
     level = np.where(first_turn, min(settings.start_level, settings.level), settings.level)
-    # Clarabel's first solve keeps the step and trust-region bounds over that stretch (`_ClarabelOnDemand`),
+    # Clarabel's first solve keeps the step and trust-region bounds over that stretch, and over a drive onto
+    # the route and a turning radius past it, where the solves move the points most (`_ClarabelOnDemand`),
     # its point count rounded up to a multiple of 8 so that similar plans share one compiled problem.
-    lead = 8 * -(-(int(np.count_nonzero(first_turn)) + 1) // 8) if settings.backend == "clarabel" else 0
+    kept = (along < drive_m + 1.0 / max_curvature) & at_robot
+    lead = 8 * -(-(int(np.count_nonzero(kept)) + 1) // 8) if settings.backend == "clarabel" else 0
     problem = _problem(
         settings.backend, n, settings.slots, 1 + len(goal_indices), settings.step_m, settings.slack_weight,
         settings.solver, lead,
@@ -647,11 +651,11 @@ _JOINED_M, _JOINED_RAD = 0.01, 0.01  # a drive this close to the route and its d
 
 
 def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, max_curvature: float,
-                 settings: RefineSettings) -> FloatArray:
+                 settings: RefineSettings) -> tuple[FloatArray, float]:
     """The route's start as a car would drive onto it, where the route leaves the start further off the
     heading than one iteration can turn a step (`_driven_path`); the route itself where it leaves along
     the heading, or where that drive comes within the refined points' level of an ellipse or does not
-    come back onto the route.
+    come back onto the route. With it, how long the drive is before it is on the route (0 for the route).
 
     The refinement turns a step's direction by at most acos(`step_shrink`) an iteration (its length
     along its previous direction keeps that fraction of it): from a route that leaves the start at a
@@ -661,14 +665,18 @@ def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, 
     """
     distinct = route[np.concatenate([[True], np.any(route[1:] != route[:-1], axis=1)])]
     if len(distinct) < 2:
-        return route
+        return route, 0.0
     if _off_heading(distinct[1] - distinct[0], heading_rad) <= math.acos(settings.step_shrink):
-        return route
+        return route, 0.0
     driven = _driven_path(distinct, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
     level = min(settings.start_level, settings.level)
     if driven is None or (len(stack) and np.min(stack.min_levels(driven)) < level):
-        return route
-    return driven
+        return route, 0.0
+    # The car is on the route at its last point before the route's own points (`_driven_path` joins them).
+    tail = min(len(driven), len(distinct)) - 1
+    same = np.all(driven[::-1][:tail] == distinct[::-1][:tail], axis=1)
+    on_route = tail if np.all(same) else int(np.argmin(same))
+    return driven, float(arc_lengths(driven)[len(driven) - 1 - on_route])
 
 
 def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step_m: float) -> FloatArray | None:

@@ -702,3 +702,33 @@ def test_a_window_widened_to_no_better_slack_than_the_one_it_grew_from_is_not_wi
     assert not _stuck(windows, 0, 351)  # down by nearly a third on the window it grew from
     assert _stuck({**windows, (0, 479): solved(0.060)}, 0, 479)
     assert not _stuck({**windows, (0, 479): solved(0.050)}, 0, 479)
+
+
+@pytest.mark.parametrize("heading_rad", [-np.pi / 2, np.pi / 2])
+def test_the_first_solve_keeps_the_trust_region_over_a_drive_onto_the_route(monkeypatch, heading_rad):
+    """The car of the test above, facing across the corridor: the drive swings it onto the route over
+    about two metres, and where it joins, the refinement moves the points most. Clarabel's first solve
+    keeps the trust region and step bounds over the drive and a turning radius past it, so each
+    iteration is solved once (with them kept over the first turning radius only, the answer broke the
+    trust region past it and was solved again, whole)."""
+    import services.planner.refine as refine_module
+
+    solves = []
+    solve = refine_module._ClarabelPathProblem.solve
+
+    def counted(self, data):
+        solves.append(self.bounded)
+        return solve(self, data)
+
+    monkeypatch.setattr(refine_module._ClarabelPathProblem, "solve", counted)
+    walls = [Ellipse.from_axes(center=[15.0, 2.5], semi_axes=[25.0, 0.6]),
+             Ellipse.from_axes(center=[15.0, -2.5], semi_axes=[25.0, 0.6])]
+    box = dict(bounds_min=np.array([-5.0, -4.0]), bounds_max=np.array([35.0, 4.0]))
+    start, goal = np.array([0.0, 0.8]), np.array([20.0, 0.0])
+    legs = tangent_route(start=start, goals=goal[None], ellipses=walls, level=RefineSettings().level, **box)
+    first, drive_m = refine_module._driven_onto(legs[0], heading_rad, stack=EllipseStack.of(walls),
+                                                max_curvature=RefineSettings().curvature_factor, settings=RefineSettings())
+    assert 1.0 < drive_m < polyline_length(first) - 10.0  # a drive, then the route's own points
+    result = refine_module.refine(legs=legs, ellipses=walls, max_curvature=1.0, heading_rad=heading_rad, **box)
+    assert result.curvature_slack <= 1e-9 and len(intersected(result.points, walls)) == 0
+    assert len(solves) == result.iterations
