@@ -389,7 +389,8 @@ class _ClarabelOnDemand:
     Those constraints seldom bind: the points are spaced for the step bound to leave the path room to
     lengthen, and one solve rarely moves a point by the trust region, except where the car swings from
     its heading onto the route, so the first turning radius keeps them (without that, four of five
-    200-obstacle fields broke them there in their first solve and were solved twice). An optimum of the
+    200-obstacle fields broke them there in their first solve and were solved twice), as do a drive onto
+    the route (`_driven_onto`) and a turning radius past it. An optimum of the
     relaxation that meets them is an optimum of the whole subproblem (it is feasible there, and nothing
     feasible there costs less), so the answer is the same up to the solver's tolerance. Past the lead
     they are a quarter of the rows (with every slot in reach) and the step cones half of the cones
