@@ -669,25 +669,23 @@ def _driven_onto(route: FloatArray, heading_rad: float, *, stack: EllipseStack, 
         return route, 0.0
     if _off_heading(distinct[1] - distinct[0], heading_rad) <= math.acos(settings.step_shrink):
         return route, 0.0
-    driven = _driven_path(distinct, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
+    found = _driven_path(distinct, heading_rad, radius_m=1.0 / max_curvature, step_m=settings.spacing_m)
     level = min(settings.start_level, settings.level)
-    if driven is None or (len(stack) and np.min(stack.min_levels(driven)) < level):
+    if found is None or (len(stack) and np.min(stack.min_levels(found[0])) < level):
         return route, 0.0
-    # The car is on the route at its last point before the route's own points (`_driven_path` joins them).
-    tail = min(len(driven), len(distinct)) - 1
-    same = np.all(driven[::-1][:tail] == distinct[::-1][:tail], axis=1)
-    on_route = tail if np.all(same) else int(np.argmin(same))
-    return driven, float(arc_lengths(driven)[len(driven) - 1 - on_route])
+    driven, car = found
+    return driven, polyline_length(driven[:car])
 
 
-def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step_m: float) -> FloatArray | None:
+def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float,
+                 step_m: float) -> tuple[FloatArray, int] | None:
     """A car's path from the route's first point, leaving along the heading, onto the route (a polyline
     of distinct consecutive points): pure pursuit of the point one turning radius further along the route
     than the car's projection, steering within the turning radius (at full lock while that point lies
     behind), steps of `step_m` along exact arcs; once it crosses the route, or is within `_JOINED_M` of
     it and `_JOINED_RAD` of its direction, the route from there on (an overshoot could take it into an
-    ellipse the route runs along). None if it has not come back onto it within the route's length twice
-    over."""
+    ellipse the route runs along). With it, how many of its first points are the car's (the last of them
+    on the route). None if it has not come back onto it within the route's length twice over."""
     seg = np.diff(route, axis=0)
     seg_len = np.linalg.norm(seg, axis=1)
     starts, unit = route[:-1], seg / seg_len[:, None]
@@ -703,7 +701,7 @@ def _driven_path(route: FloatArray, heading_rad: float, *, radius_m: float, step
         here = unit[k, 0] * (y - starts[k, 1]) - unit[k, 1] * (x - starts[k, 0])
         if len(points) > 1 and (here * side < 0.0 or gap[k] <= _JOINED_M and abs(
                 math.remainder(math.atan2(unit[k, 1], unit[k, 0]) - theta, 2.0 * math.pi)) <= _JOINED_RAD):
-            return np.vstack([np.array(points), route[k + 1 :]])
+            return np.vstack([np.array(points), route[k + 1 :]]), len(points)
         side = here
         s = min(float(along[k] + t[k]) + radius_m, float(along[-1]))
         gx, gy = np.interp(s, along, route[:, 0]), np.interp(s, along, route[:, 1])

@@ -520,7 +520,7 @@ def test_a_car_facing_off_its_route_is_driven_onto_it_before_the_refinement(head
     start, goal = np.array([0.0, 0.8]), np.array([20.0, 0.0])
     legs = tangent_route(start=start, goals=goal[None], ellipses=walls, level=RefineSettings().level, **box)
     radius, step = 1.0 / (RefineSettings().curvature_factor * 1.0), RefineSettings().spacing_m
-    drive = _driven_path(legs[0], heading_rad, radius_m=radius, step_m=step)
+    drive, _ = _driven_path(legs[0], heading_rad, radius_m=radius, step_m=step)
     first = drive[1] - drive[0]
     assert np.allclose(drive[0], start) and np.allclose(drive[-1], goal)
     assert abs(np.arctan2(first[1], first[0]) - heading_rad) < 1e-9 + 0.5 * step / radius
@@ -552,9 +552,10 @@ def test_a_drive_onto_any_route_leaves_along_the_heading_within_the_turning_radi
     legs = np.array([length for length, _ in turns])[:, None] * np.column_stack([np.cos(direction), np.sin(direction)])
     route = np.vstack([[0.0, 0.0], np.cumsum(legs, axis=0)])
     step = 0.09
-    drive = _driven_path(route, heading_rad, radius_m=radius_m, step_m=step)
-    if drive is None:
+    found = _driven_path(route, heading_rad, radius_m=radius_m, step_m=step)
+    if found is None:
         return
+    drive, _ = found
     first = drive[1] - drive[0]
     assert np.allclose(drive[0], route[0])
     assert abs(np.angle(np.exp(1j * (np.arctan2(first[1], first[0]) - heading_rad)))) <= 0.5 * step / radius_m + 1e-9
