@@ -25,7 +25,7 @@ from services.ellipsoids.cover import cover_polygon
 from services.ellipsoids.grid_cover import GridCover, GridCoverSettings
 from services.geometry import Ellipse
 from services.planner.core import (
-    MeetsOthers, PathPlan, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
+    MeetsOthers, PathPlan, Refinements, goals_ahead, meets_none, plan_until_verified, stay_at_start, why_no_path,
 )
 from services.maps.corridor import CoarseGrid, CorridorSettings, plan_in_corridor
 from services.maps.seed import drivable_paths
@@ -98,6 +98,7 @@ def plan_on_model(
     scenario: Scenario, grown: list[Ellipse], *, settings: PlanSettings = PlanSettings(), clock: _Clock | None = None,
     route_estimate_m: tuple[float, ...] | None = None, route_keep_to: KeepTo | None = None,
     meets_others: MeetsOthers = meets_none, route_seed: list[np.ndarray] | None = None,
+    refinements: Refinements | None = None,
 ) -> tuple[PathPlan, Smoothed | None]:
     """Optimise and smooth on a fitted model (the grown ellipses): the plan and its smoothed curve, as
     `plan_until_verified` returns them. The planning half of `plan_scenario`, which `cvxnav bench` times
@@ -105,7 +106,8 @@ def plan_on_model(
     (`goals_ahead`), get no leg; with none left, the plan is the start (`stay_at_start`).
     `route_estimate_m`, `route_keep_to`: each leg's length as a coarser search found it, and where the
     route may go, and drivable legs through the first goals to refine instead (`services.planner.core.plan_path`);
-    `meets_others`: whether a plan meets an obstacle it was not made among (`services.planner.core.plan_within`)."""
+    `meets_others`: whether a plan meets an obstacle it was not made among (`services.planner.core.plan_within`);
+    `refinements`: those made by earlier plans of the same query, to answer a repeated one (`Refinements`)."""
     goals = goals_ahead(scenario.start.xy, scenario.goals_array, tolerance_m=scenario.goal_tolerance)
     if not len(goals):
         return stay_at_start(scenario.start.xy, grown)
@@ -121,6 +123,7 @@ def plan_on_model(
         route_keep_to=route_keep_to,
         meets_others=meets_others,
         route_seed=route_seed,
+        refinements=refinements,
     )
     return plan_until_verified(
         **problem,
@@ -187,13 +190,14 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
             plan, smoothed = PathPlan("no_path", np.zeros((0, 2)), reason=stuck), None
         else:
             cover = GridCover(grids[0].grid, margin_m=scenario.inflation_m, settings=settings.grid_cover)
+            refinements = Refinements()  # a round planned again without its corridor may refine the same routes
             found = plan_in_corridor(
                 cover=cover,
                 waypoints=np.vstack([scenario.start.xy, goals]),
                 fixed=grown,
                 plan_fn=lambda ellipses, lengths, keep_to, meets_others, seed: plan_on_model(
                     scenario, ellipses, settings=settings, clock=clock, route_estimate_m=lengths,
-                    route_keep_to=keep_to, meets_others=meets_others, route_seed=seed),
+                    route_keep_to=keep_to, meets_others=meets_others, route_seed=seed, refinements=refinements),
                 seed_fn=lambda coarse: _drivable(scenario, grids[0].grid, goals, coarse, settings=settings),
                 settings=settings.corridor,
                 timer=clock.stage,

@@ -19,7 +19,7 @@ import numpy as np
 
 from services.geometry import Ellipse, EllipseStack, FloatArray, arc_lengths, joined_legs, polyline_length
 from services.planner.lattice import WIDER, clear_of, lead_in, through, turning_arc
-from services.planner.refine import RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
+from services.planner.refine import Refined, RefineSettings, SolverFailure, curvature_broken, leg_counts, refine
 from services.planner.route import KeepTo, tangent_route
 from services.smoother.core import Smoothed, Verification
 
@@ -49,6 +49,37 @@ class PathPlan:
     iterations: int = 0
     # No route refined clear: by how far along it the refined path that ran furthest clear entered an ellipse.
     entered_m: float | None = None
+
+
+class Refinements:
+    """The refinements made in one plan, by everything they were given: `refine` is deterministic, so one
+    asked for again is answered from here. A plan on a map asks again where a round is planned again
+    without its corridor (`services.maps.corridor`) and its route search finds the same routes: each then
+    costs what its first refinement did (seconds on a building's waypoint queries, docs/maps.md stop 47).
+    Ellipses are keyed by identity (as `EllipseStack.of` keys them), held here with the rest; the routes'
+    points by value. The refined points are read-only: whoever reads them shares them."""
+
+    def __init__(self) -> None:
+        self._done: dict[tuple, Refined | SolverFailure] = {}
+
+    def refine(self, *, legs: list[FloatArray], ellipses: list[Ellipse], bounds_min: FloatArray,
+               bounds_max: FloatArray, max_curvature: float, heading_rad: float | None,
+               settings: RefineSettings) -> Refined:
+        """`refine` on these, or what it gave (or raised) when last asked the same."""
+        key = (tuple(ellipses), tuple((leg.shape, np.ascontiguousarray(leg, dtype=float).tobytes()) for leg in legs),
+               tuple(np.asarray(bounds_min, dtype=float).tolist()), tuple(np.asarray(bounds_max, dtype=float).tolist()),
+               float(max_curvature), heading_rad, settings)
+        if key not in self._done:
+            try:
+                done = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                              max_curvature=max_curvature, heading_rad=heading_rad, settings=settings)
+                done.points.setflags(write=False)
+            except SolverFailure as failure:
+                done = failure
+            self._done[key] = done
+        if isinstance(done := self._done[key], SolverFailure):
+            raise done
+        return done
 
 
 def goals_ahead(start: FloatArray, goals: FloatArray, *, tolerance_m: float) -> FloatArray:
@@ -268,6 +299,7 @@ def plan_path(
     late: Callable[[], bool] = lambda: False,
     meets_others: MeetsOthers = meets_none,
     route_seed: list[FloatArray] | None = None,
+    refinements: Refinements | None = None,
 ) -> PathPlan:
     """Shortest drivable path start → goals (in order) outside every (grown) ellipse, or `no_path`.
 
@@ -275,7 +307,8 @@ def plan_path(
     its bounds; `route_keep_to`: where the route may go, a corridor (`route.shortest_route`);
     `route_seed`: legs the car can drive from the start through the first goals, found elsewhere where the
     routes below failed (`services.maps.seed`): they are refined as the route (on from the last of those
-    goals as the route search finds it), and nothing else is tried.
+    goals as the route search finds it), and nothing else is tried. `refinements`: the refinements made
+    earlier in the same plan (a fresh one if None), whose answers a refinement asked again takes.
 
     The route search ignores curvature, so its shortest route can demand a turn the car cannot make
     (a sharp swing off the start heading, a zigzag through a tight passage). When the refinement
@@ -304,6 +337,7 @@ def plan_path(
     """
     start = np.asarray(start, dtype=float)
     goals = np.asarray(goals, dtype=float).reshape(-1, 2)
+    refinements = Refinements() if refinements is None else refinements
     stack = EllipseStack.of(ellipses)
     straight = _straight(
         start=start,
@@ -351,8 +385,8 @@ def plan_path(
         once, one that meets others, or None; whether to try no further route: one met the bound, or it is late)."""
         nonlocal best, best_slack, entered_m
         try:
-            result = refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
-                            max_curvature=max_curvature, heading_rad=heading_rad, settings=how)
+            result = refinements.refine(legs=legs, ellipses=ellipses, bounds_min=bounds_min, bounds_max=bounds_max,
+                                        max_curvature=max_curvature, heading_rad=heading_rad, settings=how)
         except SolverFailure as failure:
             if best is None:
                 best = PathPlan("no_path", np.zeros((0, 2)), reason=str(failure))

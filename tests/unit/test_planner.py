@@ -733,3 +733,30 @@ def test_the_first_solve_keeps_the_trust_region_over_a_drive_onto_the_route(monk
     result = refine_module.refine(legs=legs, ellipses=walls, max_curvature=1.0, heading_rad=heading_rad, **box)
     assert result.curvature_slack <= 1e-9 and len(intersected(result.points, walls)) == 0
     assert len(solves) == result.iterations
+
+
+def test_a_plan_made_again_on_the_same_ellipses_refines_no_route_twice(monkeypatch):
+    """A round planned again without its corridor (`services.maps.corridor`), whose route search finds the
+    same routes, is answered from the refinements of the first: the same plan, no refinement made again.
+    The same routes among other ellipses (a new one in place of one) are refined afresh."""
+    import services.planner.core as core
+
+    refined = []
+
+    def counted(**kwargs):
+        refined.append(kwargs["legs"])
+        return refine(**kwargs)
+
+    refine = core.refine
+    monkeypatch.setattr(core, "refine", counted)
+    goals = np.array([[6.0, 0.0], [4.0, 0.0]])
+    disc = [Ellipse.circle(center=[5.0, -2.5], radius=1.0)]
+    problem = dict(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, max_curvature=1.0, **BOX)
+    refinements = core.Refinements()
+    first = plan_path(**problem, ellipses=disc, route_keep_to=lambda p, q: np.ones(len(p), dtype=bool),
+                      refinements=refinements)
+    assert first.status == "ok" and len(refined) == 2  # the route there and back, then the loop
+    again = plan_path(**problem, ellipses=disc, refinements=refinements)
+    assert len(refined) == 2 and np.array_equal(again.points, first.points)
+    other = plan_path(**problem, ellipses=[Ellipse.circle(center=[5.0, -2.5], radius=1.0)], refinements=refinements)
+    assert len(refined) == 4 and np.array_equal(other.points, first.points)
