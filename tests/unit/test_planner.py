@@ -668,20 +668,26 @@ def test_a_goal_the_next_lies_back_from_is_passed_round_a_loop():
     assert np.allclose(plan.points[list(plan.goal_indices)], goals)
 
 
-def test_a_turn_back_at_a_goal_is_looped_round_before_any_other_route_is_refined(monkeypatch):
+@pytest.fixture
+def refined(monkeypatch) -> list:
+    """The routes the planner core refines, as it refines them."""
+    import services.planner.core as core
+
+    made = []
+    refine = core.refine
+
+    def counted(**kwargs):
+        made.append(kwargs["legs"])
+        return refine(**kwargs)
+
+    monkeypatch.setattr(core, "refine", counted)
+    return made
+
+
+def test_a_turn_back_at_a_goal_is_looped_round_before_any_other_route_is_refined(refined):
     """As above: the first route's refinement breaks the bound at the first goal, where it turns back. No
     lead-in at the start changes that turn, and refining a route round enlarged ellipses costs as much as
     the first: the loop through the goals is refined next, and with its bound met nothing else is."""
-    import services.planner.core as core
-
-    refined = []
-
-    def counted(**kwargs):
-        refined.append(kwargs["legs"])
-        return refine(**kwargs)
-
-    refine = core.refine
-    monkeypatch.setattr(core, "refine", counted)
     goals = np.array([[6.0, 0.0], [4.0, 0.0]])
     disc = [Ellipse.circle(center=[5.0, -2.5], radius=1.0)]
     plan = plan_path(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, ellipses=disc, max_curvature=1.0,
@@ -735,24 +741,16 @@ def test_the_first_solve_keeps_the_trust_region_over_a_drive_onto_the_route(monk
     assert len(solves) == result.iterations
 
 
-def test_a_plan_made_again_on_the_same_ellipses_refines_no_route_twice(monkeypatch):
+def test_a_plan_made_again_on_the_same_ellipses_refines_no_route_twice(refined):
     """A round planned again without its corridor (`services.maps.corridor`), whose route search finds the
     same routes, is answered from the refinements of the first: the same plan, no refinement made again.
     The same routes among other ellipses (a new one in place of one) are refined afresh."""
-    import services.planner.core as core
+    from services.planner.core import Refinements
 
-    refined = []
-
-    def counted(**kwargs):
-        refined.append(kwargs["legs"])
-        return refine(**kwargs)
-
-    refine = core.refine
-    monkeypatch.setattr(core, "refine", counted)
     goals = np.array([[6.0, 0.0], [4.0, 0.0]])
     disc = [Ellipse.circle(center=[5.0, -2.5], radius=1.0)]
     problem = dict(start=np.array([0.0, 0.0]), heading_rad=0.0, goals=goals, max_curvature=1.0, **BOX)
-    refinements = core.Refinements()
+    refinements = Refinements()
     first = plan_path(**problem, ellipses=disc, route_keep_to=lambda p, q: np.ones(len(p), dtype=bool),
                       refinements=refinements)
     assert first.status == "ok" and len(refined) == 2  # the route there and back, then the loop
