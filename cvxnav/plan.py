@@ -218,5 +218,6 @@ def _plan_local(scenario: Scenario, *, settings: PlanSettings, load_ms: float,
         raw_path=plan.points.tolist(),
         ellipsoids=[ellipse_to_model(e) for e in grown],
         timings_ms=PlanTimings(**clock.ms),
-        reason="" if ok else why_no_path(plan, smoothed, max_curvature=scenario.max_curvature),
+        reason="" if ok else why_no_path(plan, smoothed, max_curvature=scenario.max_curvature,
+                                         goals=scenario.goals_array),
     )

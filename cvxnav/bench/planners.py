@@ -66,7 +66,8 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     plan, smoothed = plan_on_model(problem.scenario, problem.grown)
     elapsed = time.perf_counter() - t0
     if smoothed is None or not smoothed.verification.ok:
-        why = why_no_path(plan, smoothed, max_curvature=problem.scenario.max_curvature)
+        why = why_no_path(plan, smoothed, max_curvature=problem.scenario.max_curvature,
+                          goals=problem.scenario.goals_array)
         return Attempt(path=None, time_s=elapsed, reason=f"cvxnav: no_path ({why})")
     return Attempt(path=smoothed.points, time_s=elapsed)
 

@@ -578,11 +578,15 @@ def plan_within(
     return fallback
 
 
-def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: float) -> str:
+def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: float,
+                goals: FloatArray | None = None) -> str:
     """Why `plan_until_verified` found no verified path: the plan's reason, or its curve's verdict. A curve
     too sharp within a turning radius of the start, or refined routes that all enter an ellipse there,
     mean that no route found could be joined from the start's heading in the room there (the turning
-    lead-ins included), and the reason says so."""
+    lead-ins included), and the reason says so. A curve too sharp within two turning radii of a goal
+    before the last (in the plan's frame, and `goals` every goal the plan was asked for, the ones reached
+    at the start included) means that no path found passes through that goal on to the next (a turn
+    back there needs a loop, `lattice.through`), and the reason names the goal."""
     radius = 1.0 / max_curvature
     if smoothed is None:
         if plan.entered_m is not None and plan.entered_m <= radius:
@@ -590,9 +594,33 @@ def why_no_path(plan: PathPlan, smoothed: Smoothed | None, *, max_curvature: flo
         return plan.reason
     verdict = smoothed.verification
     # The verdict tests clearance first: a clear curve that failed above the bound failed on its curvature.
-    if verdict.min_level > 1.0 and verdict.max_curvature > max_curvature and verdict.sharpest_m <= radius:
-        return f"{verdict.reason}: {_at_start(radius)}"
+    if verdict.min_level > 1.0 and verdict.max_curvature > max_curvature:
+        if verdict.sharpest_m <= radius:
+            return f"{verdict.reason}: {_at_start(radius)}"
+        if goals is not None and (number := _goal_near(plan, smoothed, goals, within_m=2.0 * radius)) is not None:
+            return (f"{verdict.reason}: within two turning radii ({2.0 * radius:.2f} m) of goal {number} of "
+                    f"{len(goals)}, no path found passes through it on to the next goal in the room there, and a "
+                    "plan never reverses")
     return verdict.reason
+
+
+def _goal_near(plan: PathPlan, smoothed: Smoothed, goals: FloatArray, *, within_m: float) -> int | None:
+    """The number (from 1, among `goals`) of the goal before the plan's last that its curve's sharpest point
+    lies within `within_m` of, if any. The plan's goals are some of `goals`, in order, exactly."""
+    curve = smoothed.points
+    along = arc_lengths(curve)
+    sharpest = np.array([np.interp(smoothed.verification.sharpest_m, along, curve[:, k]) for k in range(2)])
+    numbers, j = [], 0
+    for goal in plan.points[list(plan.goal_indices)]:
+        while j < len(goals) and math.dist(goals[j], goal) > _SAME_POINT_M:
+            j += 1
+        numbers.append(j + 1)
+    passed = plan.points[list(plan.goal_indices[:-1])]
+    if not len(passed) or numbers[-1] > len(goals):
+        return None
+    distances = np.linalg.norm(passed - sharpest, axis=1)
+    nearest = int(np.argmin(distances))
+    return numbers[nearest] if distances[nearest] <= within_m else None
 
 
 def _at_start(radius: float) -> str:

@@ -758,3 +758,28 @@ def test_a_plan_made_again_on_the_same_ellipses_refines_no_route_twice(refined):
     assert len(refined) == 2 and np.array_equal(again.points, first.points)
     other = plan_path(**problem, ellipses=[Ellipse.circle(center=[5.0, -2.5], radius=1.0)], refinements=refinements)
     assert len(refined) == 4 and np.array_equal(other.points, first.points)
+
+
+def test_a_goal_the_car_cannot_turn_back_at_is_named_in_the_reason():
+    """A corridor 1.6 m wide, the car's turning radius 1 m: it reaches goal 6 m ahead but cannot turn back
+    to the next, 3 m behind, without reversing. No path, and the reason names the goal it fails at,
+    numbered among every goal asked for (the first, at the start, reached there)."""
+    from services.planner.core import goals_ahead, plan_until_verified, why_no_path
+    from services.smoother.core import smooth
+
+    walls = [Ellipse.from_axes(center=[15.0, 1.4], semi_axes=[25.0, 0.6]),
+             Ellipse.from_axes(center=[15.0, -1.4], semi_axes=[25.0, 0.6])]
+    box = dict(bounds_min=np.array([-5.0, -4.0]), bounds_max=np.array([35.0, 4.0]))
+    start, asked = np.array([0.0, 0.0]), np.array([[0.0, 0.0], [6.0, 0.0], [3.0, 0.0]])
+    goals = goals_ahead(start, asked, tolerance_m=0.1)
+
+    def smooth_fn(points):
+        return smooth(points, ellipses=walls, max_curvature=1.0, heading_rad=0.0, goals=goals, goal_tolerance_m=0.1,
+                      **box)
+
+    plan, smoothed = plan_until_verified(start=start, heading_rad=0.0, goals=goals, ellipses=walls, max_curvature=1.0,
+                                         **box, settings=RefineSettings(), repairs=(), smooth_fn=smooth_fn)
+    assert not smoothed.verification.ok
+    why = why_no_path(plan, smoothed, max_curvature=1.0, goals=asked)
+    assert why.startswith(smoothed.verification.reason) and "of goal 2 of 3, no path found passes through it" in why
+    assert "goal" not in why_no_path(plan, smoothed, max_curvature=1.0)  # without the goals asked for: unnamed
