@@ -327,7 +327,9 @@ def plan_path(
     the car's own turns through the goals (`lattice.through`, on the ellipses) is refined as a seed is,
     before any other route: a lead-in at the start changes nothing at the goal, and a route round
     enlarged ellipses seldom comes in to it less sharply, each refined at the first one's cost (where
-    the first does not break it there, the best of them all is tested so at the end). Once `late()` (the
+    the first does not break it there, the best of them all is tested so at the end); where the loop
+    breaks it at a goal too, the lead-ins at the start (along the heading, turning onto the route) are not
+    tried at all, the enlarged routes still are. Once `late()` (the
     replan was called off), no further route is tried after one that refined clear. A plan that
     `meets_others` (an obstacle it was not planned among) is returned at once as an "ok" plan, for the
     caller to plan again among more obstacles, never to publish: any route refined clear, and the
@@ -436,7 +438,10 @@ def plan_path(
     if route_seed is not None:
         return seeded(route_seed) or verdict()
     first_leg = None  # the first route's, where the car has a heading
+    at_a_goal = False  # the first route and the loop break the bound at a goal before the last
     for attempt, (lead, extra_m) in enumerate(tries):
+        if at_a_goal and lead is not None and extra_m == 0.0:
+            continue
         legs = search(goals, lead=lead, extra_m=extra_m)
         if legs is None:
             if attempt == 0:
@@ -455,6 +460,7 @@ def plan_path(
         if handed is None and attempt == 0:  # a turn back at a goal: before the other routes
             handed = loop_through()
             enough = enough or best_slack <= 1e-6
+            at_a_goal = looped and best is not None and _broken_at_a_goal(best, 1.0 / radius, 2.0 * radius)
         if handed is not None:
             return handed
         if enough:

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from services.geometry import Ellipse, EllipseStack, distance, polyline_length
 from services.planner.core import goals_ahead, intersected, plan_path, stay_at_start
-from services.planner.refine import RefineSettings, resample_legs
+from services.planner.refine import RefineSettings, curvature_broken, resample_legs
 from services.planner.route import tangent_route
 from services.planner.route.arcs import Arcs, cuts
 from services.planner.route.cells import DeepCells
@@ -783,3 +783,32 @@ def test_a_goal_the_car_cannot_turn_back_at_is_named_in_the_reason():
     why = why_no_path(plan, smoothed, max_curvature=1.0, goals=asked)
     assert why.startswith(smoothed.verification.reason) and "of goal 2 of 3, no path found passes through it" in why
     assert "goal" not in why_no_path(plan, smoothed, max_curvature=1.0)  # without the goals asked for: unnamed
+
+
+def test_a_route_that_breaks_the_bound_at_a_goal_is_not_led_in_again_from_the_start(monkeypatch):
+    """The corridor of the test above, goals 6 m ahead, 3 m back and 12 m ahead: the route and the loop
+    through the goals both break the curvature bound at the first goal. A lead-in along the start heading
+    (or a turn onto the route) changes the route at the start, not at that goal: no route is searched with
+    one (each cost the refinement of a whole route on the depot's waypoint queries, docs/maps.md stop 47).
+    The routes round enlarged ellipses, which may come in to the goal less sharply, are still tried."""
+    import services.planner.core as core
+
+    searched = []
+    route = core._route
+
+    def spied(**kwargs):
+        searched.append((kwargs["lead"], kwargs["extra_m"]))
+        return route(**kwargs)
+
+    monkeypatch.setattr(core, "_route", spied)
+    walls = [Ellipse.from_axes(center=[15.0, 1.4], semi_axes=[25.0, 0.6]),
+             Ellipse.from_axes(center=[15.0, -1.4], semi_axes=[25.0, 0.6])]
+    start = np.array([0.0, 0.0])
+    plan = plan_path(start=start, heading_rad=0.0, goals=np.array([[6.0, 0.0], [3.0, 0.0], [12.0, 0.0]]),
+                     ellipses=walls, max_curvature=1.0, bounds_min=np.array([-5.0, -4.0]),
+                     bounds_max=np.array([35.0, 4.0]))
+    assert plan.status == "ok" and curvature_broken(plan.points, 1.0).any()  # no plan meets the bound
+    # One route searched with a lead and no enlargement: the loop's, on from its last pose (not the start's
+    # lead-in, searched before this change, nor a turn onto the route); and the enlarged ones.
+    assert sum(1 for lead, extra in searched if lead is not None and extra == 0.0) == 1
+    assert any(extra > 0.0 for _, extra in searched)
