@@ -548,9 +548,9 @@ class Scenario(_Frozen):
         inside = self.bounds.contains(pts)
         for (loc, p), ok in zip(named, inside):
             if not ok:
-                raise FieldError(
-                    loc, f"{list(p)} is outside bounds {list(self.bounds.min)}..{list(self.bounds.max)}"
-                )
+                # Bounds taken from a map's extent are sums of its origin and cells: shown to a nanometre.
+                low, high = ([round(v, 9) for v in corner] for corner in (self.bounds.min, self.bounds.max))
+                raise FieldError(loc, f"{list(p)} is outside bounds {low}..{high}")
         for j, obstacle in enumerate(self.obstacles):
             if obstacle.type == "occupancy_grid":
                 inside = obstacle.grid.cells_of(pts)[2]
