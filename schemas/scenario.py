@@ -253,6 +253,11 @@ class Bounds(_Frozen):
             raise FieldError(("max",), f"must exceed bounds.min {list(self.min)} on both axes, got {list(self.max)}")
         return self
 
+    def shown(self) -> str:
+        """The bounds as an error message shows them, "[x, y]..[x, y]": to a nanometre, for bounds taken from a
+        map's extent are sums of its origin and cells (24 cells of 0.05 m are 1.2000000000000002 m)."""
+        return "..".join(str([round(v, 9) for v in corner]) for corner in (self.min, self.max))
+
     def contains(self, points: ArrayLike) -> NDArray[np.bool_]:
         """True for each point inside or on the bounds."""
         z = np.atleast_2d(np.asarray(points, dtype=float))
@@ -548,9 +553,7 @@ class Scenario(_Frozen):
         inside = self.bounds.contains(pts)
         for (loc, p), ok in zip(named, inside):
             if not ok:
-                # Bounds taken from a map's extent are sums of its origin and cells: shown to a nanometre.
-                low, high = ([round(v, 9) for v in corner] for corner in (self.bounds.min, self.bounds.max))
-                raise FieldError(loc, f"{list(p)} is outside bounds {low}..{high}")
+                raise FieldError(loc, f"{list(p)} is outside bounds {self.bounds.shown()}")
         for j, obstacle in enumerate(self.obstacles):
             if obstacle.type == "occupancy_grid":
                 inside = obstacle.grid.cells_of(pts)[2]
@@ -583,7 +586,7 @@ class Scenario(_Frozen):
         x0, y0, x1, y1 = shape.bounds
         (bx0, by0), (bx1, by1) = self.bounds.min, self.bounds.max
         if not (x0 >= bx0 and y0 >= by0 and x1 <= bx1 and y1 <= by1):
-            raise FieldError(("start",), f"{size} leaves bounds {list(self.bounds.min)}..{list(self.bounds.max)}")
+            raise FieldError(("start",), f"{size} leaves bounds {self.bounds.shown()}")
         for j, obstacle in enumerate(self.obstacles):
             if obstacle.type == "occupancy_grid":
                 touches = _footprint_on_grid(obstacle.grid, shape)

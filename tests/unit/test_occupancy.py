@@ -160,6 +160,8 @@ def test_every_bad_map_is_one_line_naming_the_field(tmp_path):
     ({"goals": [[0.5, 0.6]]}, "goals[0]: [0.5, 0.6] is on the edge of a blocked cell of obstacles[0]'s map"),
     # The bounds, the map's extent, shown to a nanometre: 24 cells of 0.05 m are 1.2000000000000002 m.
     ({"start": {"x": -0.1, "y": 0.3, "theta": 0.0}}, "start: [-0.1, 0.3] is outside bounds [0.0, 0.0]..[1.2, 1.0]$"),
+    ({"start": {"x": 0.1, "y": 0.5, "theta": 0.0}},
+     "start: the robot's 0.6 × 0.3 m footprint leaves bounds [0.0, 0.0]..[1.2, 1.0]$"),
 ])
 def test_a_start_or_goal_in_a_blocked_or_unknown_cell_is_refused(tmp_path, where, expected):
     _write_map(tmp_path, _pixels())
