@@ -54,8 +54,8 @@ class PathPlan:
 class Refinements:
     """The refinements made in one plan, by everything they were given: `refine` is deterministic, so one
     asked for again is answered from here. A plan on a map asks again where a round is planned again
-    without its corridor (`services.maps.corridor`) and its route search finds the same routes: each then
-    costs what its first refinement did (seconds on a building's waypoint queries, docs/maps.md stop 47).
+    without its corridor (`services.maps.corridor`) and its route search finds the same routes, each of
+    which would otherwise cost what its first refinement did (docs/maps.md, stop 47).
     Ellipses are keyed by identity (as `EllipseStack.of` keys them), held here with the rest; the routes'
     points by value. The refined points are read-only: whoever reads them shares them."""
 
