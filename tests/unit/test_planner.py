@@ -757,7 +757,9 @@ def test_a_plan_made_again_on_the_same_ellipses_refines_no_route_twice(refined):
     again = plan_path(**problem, ellipses=disc, refinements=refinements)
     assert len(refined) == 2 and np.array_equal(again.points, first.points)
     other = plan_path(**problem, ellipses=[Ellipse.circle(center=[5.0, -2.5], radius=1.0)], refinements=refinements)
-    assert len(refined) == 4 and np.array_equal(other.points, first.points)
+    # Refined afresh: the same plan to the solver's tolerance, not to the bit (the process's first setup of a
+    # compiled problem and its later reuse differ by 6e-10 m, so the test order decided it).
+    assert len(refined) == 4 and np.allclose(other.points, first.points, rtol=0.0, atol=1e-8)
 
 
 def test_a_goal_the_car_cannot_turn_back_at_is_named_in_the_reason():
