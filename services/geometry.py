@@ -221,6 +221,32 @@ class EllipseStack:
             _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
         )
 
+    def segments_clear(self, starts: ArrayLike, ends: ArrayLike, *, level: float) -> np.ndarray:
+        """Whether each segment keeps at least `level` from every ellipse (its `segment_levels` minimum).
+
+        For a few segments close together (the next motions of a car's search): only the ellipses whose
+        bounding disc scaled to `level` meets the segments' bounding box are tested, with the same
+        arithmetic. The others pass: a point z further than level · reach from an ellipse's centre c has
+        ‖A z + b‖ = ‖A (z − c)‖ ≥ ‖z − c‖ / reach > level (A symmetric, its least eigenvalue 1 / reach).
+        """
+        p = np.atleast_2d(np.asarray(starts, dtype=float))
+        q = np.atleast_2d(np.asarray(ends, dtype=float))
+        if len(self) == 0 or len(p) == 0:
+            return np.ones(len(p), dtype=bool)
+        lo, hi = np.minimum(p.min(axis=0), q.min(axis=0)), np.maximum(p.max(axis=0), q.max(axis=0))
+        c = self.centers
+        out = np.maximum(np.maximum(lo - c, c - hi), 0.0)  # each centre's offset from the box
+        bound = level * self.reach * (1.0 + 1e-9)  # above the reach's rounding
+        near = np.flatnonzero(out[:, 0] * out[:, 0] + out[:, 1] * out[:, 1] <= bound * bound)
+        if not len(near):
+            return np.ones(len(p), dtype=bool)
+        columns = [col[:, None, near] for col in self._columns]
+        d = q - p
+        levels = _segment_minimum(
+            _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
+        )
+        return levels.min(axis=1) >= level
+
     def polyline_level(self, points: ArrayLike) -> float:
         """min over a short polyline's segments and every ellipse of the `segment_levels` level (+inf
         without ellipses): the exact test on all pairs, a segment at a time with its ends as plain

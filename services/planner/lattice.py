@@ -69,10 +69,11 @@ def lead_in(*, start: FloatArray, heading_rad: float, route: FloatArray, stack: 
 
 
 def clear_of(stack: EllipseStack, level: float) -> Clear:
-    """The chord test that keeps at least `level` from each ellipse of `stack` (exact on each segment)."""
+    """The chord test that keeps at least `level` from each ellipse of `stack` (exact on each segment,
+    `EllipseStack.segments_clear`)."""
 
     def clear(starts: FloatArray, ends: FloatArray) -> np.ndarray:
-        return stack.segment_levels(starts, ends).min(axis=1, initial=np.inf) >= level
+        return stack.segments_clear(starts, ends, level=level)
 
     return clear
 

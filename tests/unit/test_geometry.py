@@ -79,6 +79,42 @@ def test_a_polyline_s_level_is_the_least_segment_level_to_the_bit():
     assert EllipseStack.of([]).polyline_level([[0.0, 0.0], [1.0, 1.0]]) == np.inf
 
 
+def test_segments_clear_is_the_whole_stack_s_segment_test_for_a_car_s_next_motions():
+    """The broad phase leaves out only ellipses the segments pass above the level: the answer is the
+    exact test against all of them, also for segments that graze an ellipse at the level (thin walls,
+    far from the origin as a map in UTM metres is)."""
+    rng = np.random.default_rng(11)
+    origin = np.array([4.6e5, 5.3e6])
+    ellipses = [
+        Ellipse.from_axes(center=origin + c, semi_axes=a, angle_rad=t)
+        for c, a, t in zip(rng.uniform(-6, 6, (120, 2)), rng.uniform(0.02, 1.5, (120, 2)), rng.uniform(0, np.pi, 120))
+    ]
+    stack = EllipseStack.of(ellipses)
+    level = 1.01
+    found = {True: 0, False: 0}
+    for _ in range(300):
+        at = origin + rng.uniform(-7, 7, 2)
+        starts = at + rng.uniform(-0.4, 0.4, (9, 2))
+        ends = starts + rng.uniform(-0.2, 0.2, (9, 2))
+        exact = stack.segment_levels(starts, ends).min(axis=1) >= level
+        assert np.array_equal(stack.segments_clear(starts, ends, level=level), exact)
+        for clear in exact.tolist():
+            found[clear] += 1
+    assert min(found.values()) > 100  # both answers asked for
+    # A segment tangent to an ellipse's boundary scaled to the level (c + level A⁻¹ w) just outside it,
+    # and one just inside.
+    e = ellipses[0]
+    alone = EllipseStack.of([e])
+    w, along = np.array([np.cos(0.7), np.sin(0.7)]), np.array([-np.sin(0.7), np.cos(0.7)])
+    rim, tangent = e.center + level * np.linalg.solve(e.A, w), np.linalg.solve(e.A, along)
+    for scale, clear in ((1.0 + 1e-6, True), (1.0 - 1e-6, False)):
+        point = e.center + scale * (rim - e.center)
+        starts, ends = (point - 1e-3 * tangent)[None], (point + 1e-3 * tangent)[None]
+        assert alone.segments_clear(starts, ends, level=level).tolist() == [clear]
+        assert (alone.segment_levels(starts, ends).min() >= level) == clear
+    assert EllipseStack.of([]).segments_clear([[0.0, 0.0]], [[1.0, 1.0]], level=level).tolist() == [True]
+
+
 def test_growing_a_disc_adds_the_margin_to_its_radius():
     grown = Ellipse.circle(center=[3.0, 4.0], radius=0.7).grown(0.65)
     assert grown.semi_axes == pytest.approx([1.35, 1.35], rel=1e-9)
