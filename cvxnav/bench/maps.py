@@ -23,8 +23,9 @@ The planners, each a fresh call that reads the files:
   whole budget.
 
 Every path is judged on the true geometry (the exact distance to the blocked squares,
-`Scenario.clearance`, on the path resampled at 0.02 m). Growth: the depot tiled side by side 1×, 2× and
-4×, depot-1's query in the first copy, cvxnav and the grid planner timed in turns. Memory: the peak
+`Scenario.clearance`, on the path resampled at 0.02 m). Each scenario is timed in a process of its own
+(`_isolated`). Growth: the depot tiled side by side 1×, 2× and 4×, depot-1's query in the first copy,
+cvxnav and the grid planner timed in turns, each tiling in a process of its own. Memory: the peak
 resident set (the kernel's `VmHWM`) of a `cvxnav plan` process on the 30 × 50 m map, and of a process
 running the grid planner on it.
 """
@@ -33,14 +34,18 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 import os
+import queue
 import statistics
 import subprocess
 import sys
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from PIL import Image
@@ -62,6 +67,7 @@ GRID = "grid (NavFn-like)"
 BIT_POINT = "BIT* (OMPL, point)"
 BIT_DUBINS = "BIT* (OMPL, Dubins)"
 COLLISION_TOLERANCE_M = 0.02
+_T = TypeVar("_T")
 _DEPOT_CAR = {"width": 0.3, "length": 0.6, "wheelbase": 0.6, "safety_distance": 0.3, "max_speed": 1.0,
               "max_steering_angle": 0.6, "max_steering_rate": 0.5}
 _SENSOR = {"fov_deg": 180.0, "range": 5.0, "rays": 181, "rate_hz": 10.0}
@@ -396,40 +402,14 @@ class MapBenchOptions:
 
 def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: Path, shared: Path | None,
                   with_ompl: bool, on_step: Callable[[str], None] = lambda text: None) -> MapBenchResult:
-    """Every planner on every case in turns, the growth run and the memory figure."""
-    results = []
-    for case in cases:
-        scenario = load_scenario(case.path)
-        grid = _grid(scenario)
-        on_step(f"{scenario.name}: cold calls")
-        cold = call_cvxnav(case.path)  # warms the process (imports, compiled problems) as for every peer
-        call_grid(case.path)
-        target = case.reference_m or (polyline_length(cold.path) if cold.path is not None else None)
-        calls: dict[str, Callable[[int], MapAttempt]] = {CVXNAV: lambda k: call_cvxnav(case.path),
-                                                         GRID: lambda k: call_grid(case.path)}
-        if with_ompl:
-            for name, dubins in ((BIT_POINT, False), (BIT_DUBINS, True)):
-                calls[name] = lambda k, dubins=dubins: call_bitstar(case.path, dubins=dubins,
-                                                                    budget_s=options.sampling_budget_s, target_m=target)
-
-        def wants_more(name: str, done: list[MapAttempt]) -> bool:
-            if name in (BIT_POINT, BIT_DUBINS):
-                return len(done) < options.repeats
-            timed = sum(a.time_s for a in done)
-            return len(done) < options.repeats or (len(done) < options.max_repeats and timed < options.min_timed_s)
-
-        attempts = in_turns(calls, wants_more, seed=options.seed,
-                            on_round=lambda k, name=scenario.name: on_step(f"{name}: in turns, round {k + 1}"))
-        rows = [_summary(name, scenario, done, reference_m=case.reference_m, sampling=name.startswith("BIT"))
-                for name, done in attempts.items()]
-        results.append(MapScenarioResult(
-            name=scenario.name, note=case.note, cells=int(np.prod(grid.shape)), resolution_m=grid.resolution_m,
-            area_m2=float(np.prod(grid.size_m)), reference_m=case.reference_m, target_m=target, planners=rows))
+    """Every planner on every case in turns, the growth run and the memory figure; each case and each
+    growth point in a process of its own (`_isolated`)."""
+    results = [_isolated(bench_case, case, options, with_ompl, on_step=on_step) for case in cases]
     growth = []
     if shared is not None and options.growth_tiles and (shared / "maps" / "depot.pgm").is_file():
         on_step("growth: the depot tiled")
-        growth = growth_benchmark(write_growth_maps(work_dir / "growth", shared=shared, tiles=options.growth_tiles),
-                                  repeats=options.growth_repeats, seed=options.seed)
+        growth = [_isolated(growth_point, k, path, options.growth_repeats, options.seed, on_step=on_step)
+                  for k, path in write_growth_maps(work_dir / "growth", shared=shared, tiles=options.growth_tiles)]
     memory: dict[str, float] = {}
     big = next((c for c in cases if c.path.stem == "warehouse-30x50"), None)
     if options.memory and big is not None:
@@ -439,6 +419,98 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
                   GRID: peak_rss_mib("cvxnav.bench.grid_planner", str(big.path), work_dir=work_dir)}
     return MapBenchResult(scenarios=results, growth=growth, peak_rss_mib=memory, targets=_targets(results, growth, memory),
                           notes=_notes(options))
+
+
+def bench_case(case: MapCase, options: MapBenchOptions, with_ompl: bool, *,
+               on_step: Callable[[str], None]) -> MapScenarioResult:
+    """Every planner on one case, in turns, after one untimed call each."""
+    scenario = load_scenario(case.path)
+    grid = _grid(scenario)
+    on_step(f"{scenario.name}: cold calls")
+    cold = call_cvxnav(case.path)  # warms the process (imports, compiled problems) as for every peer
+    call_grid(case.path)
+    target = case.reference_m or (polyline_length(cold.path) if cold.path is not None else None)
+    calls: dict[str, Callable[[int], MapAttempt]] = {CVXNAV: lambda k: call_cvxnav(case.path),
+                                                     GRID: lambda k: call_grid(case.path)}
+    if with_ompl:
+        for name, dubins in ((BIT_POINT, False), (BIT_DUBINS, True)):
+            calls[name] = lambda k, dubins=dubins: call_bitstar(case.path, dubins=dubins,
+                                                                budget_s=options.sampling_budget_s, target_m=target)
+
+    def wants_more(name: str, done: list[MapAttempt]) -> bool:
+        if name in (BIT_POINT, BIT_DUBINS):
+            return len(done) < options.repeats
+        timed = sum(a.time_s for a in done)
+        return len(done) < options.repeats or (len(done) < options.max_repeats and timed < options.min_timed_s)
+
+    attempts = in_turns(calls, wants_more, seed=options.seed,
+                        on_round=lambda k: on_step(f"{scenario.name}: in turns, round {k + 1}"))
+    rows = [_summary(name, scenario, done, reference_m=case.reference_m, sampling=name.startswith("BIT"))
+            for name, done in attempts.items()]
+    return MapScenarioResult(
+        name=scenario.name, note=case.note, cells=int(np.prod(grid.shape)), resolution_m=grid.resolution_m,
+        area_m2=float(np.prod(grid.size_m)), reference_m=case.reference_m, target_m=target, planners=rows)
+
+
+def growth_point(tiles: int, path: Path, repeats: int, seed: int, *, on_step: Callable[[str], None]) -> MapGrowthPoint:
+    """cvxnav's and the grid planner's times on one tiled depot, in turns (medians)."""
+    on_step(f"growth: the depot tiled {tiles}×")
+    call_cvxnav(path)
+    call_grid(path)
+    calls = {CVXNAV: lambda i: call_cvxnav(path), GRID: lambda i: call_grid(path)}
+    done = in_turns(calls, lambda name, got: len(got) < repeats, seed=seed)
+    grid = _grid(load_scenario(path))
+    return MapGrowthPoint(tiles=tiles, cells=int(np.prod(grid.shape)),
+                          cvxnav_ms=statistics.median(1e3 * a.time_s for a in done[CVXNAV]),
+                          grid_ms=statistics.median(1e3 * a.time_s for a in done[GRID]),
+                          ok=all(a.path is not None for a in done[CVXNAV]))
+
+
+def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], None]) -> _T:
+    """`work(*args, on_step=...)` in a fresh process (spawned: it inherits nothing but the arguments), its
+    progress relayed to `on_step`, its result (or its traceback, raised here) handed back.
+
+    What ran before in a process moves a planner's time: numpy's large arrays come from the C library's
+    allocator, which, once a larger map's arrays were freed, keeps blocks of the depot's size for reuse
+    instead of handing them back to the system and faulting them in afresh on the next call. Run after
+    ACES in one process the grid planner planned depot-1 in 41 ms, run first in 59 (docs/maps.md, stop
+    48): a bench whose figures depend on the order of its scenarios. In a process of its own each case
+    starts from the state a planner serving that map alone would be in."""
+    context = multiprocessing.get_context("spawn")
+    messages = context.Queue()
+    process = context.Process(target=_reporting, args=(work, args, messages), daemon=True)
+    process.start()
+    try:
+        while True:
+            try:
+                kind, value = messages.get(timeout=0.5)
+            except queue.Empty:
+                if process.is_alive():
+                    continue
+                try:  # it may have ended just after its last message
+                    kind, value = messages.get(timeout=1.0)
+                except queue.Empty:
+                    raise RuntimeError(f"{work.__name__}{args!r}: its process ended (exit code {process.exitcode}) "
+                                       "without a result") from None
+            if kind == "step":
+                on_step(value)
+            elif kind == "done":
+                return value
+            else:
+                raise RuntimeError(f"{work.__name__}{args!r} failed in its process:\n{value}")
+    finally:
+        process.join(timeout=5.0)
+        if process.is_alive():
+            process.kill()
+            process.join()
+
+
+def _reporting(work: Callable[..., object], args: tuple, messages) -> None:
+    """`_isolated`'s child: run the work, sending its progress and then its result or traceback."""
+    try:
+        messages.put(("done", work(*args, on_step=lambda text: messages.put(("step", text)))))
+    except BaseException:  # the parent raises it, with this traceback
+        messages.put(("error", traceback.format_exc()))
 
 
 _PEAK_RSS = ("import atexit, os, runpy, sys\n"
@@ -458,22 +530,6 @@ def peak_rss_mib(module: str, *args: str, work_dir: Path) -> float:
     subprocess.run([sys.executable, "-c", _PEAK_RSS, module, *args], stdout=subprocess.DEVNULL,
                    stderr=subprocess.DEVNULL, env={**os.environ, "CVXNAV_PEAK_RSS_FILE": str(report)}, check=False)
     return int(report.read_text()) / 1024.0
-
-
-def growth_benchmark(maps: list[tuple[int, Path]], *, repeats: int, seed: int) -> list[MapGrowthPoint]:
-    """cvxnav's and the grid planner's times on the tiled depots, in turns (medians)."""
-    points = []
-    for k, path in maps:
-        call_cvxnav(path)
-        call_grid(path)
-        calls = {CVXNAV: lambda i, path=path: call_cvxnav(path), GRID: lambda i, path=path: call_grid(path)}
-        done = in_turns(calls, lambda name, got: len(got) < repeats, seed=seed)
-        ours = statistics.median(1e3 * a.time_s for a in done[CVXNAV])
-        theirs = statistics.median(1e3 * a.time_s for a in done[GRID])
-        grid = _grid(load_scenario(path))
-        points.append(MapGrowthPoint(tiles=k, cells=int(np.prod(grid.shape)), cvxnav_ms=ours, grid_ms=theirs,
-                                     ok=all(a.path is not None for a in done[CVXNAV])))
-    return points
 
 
 def _targets(results: list[MapScenarioResult], growth: list[MapGrowthPoint], memory: dict[str, float]) -> MapTargets:
@@ -500,7 +556,9 @@ def _targets(results: list[MapScenarioResult], growth: list[MapGrowthPoint], mem
 def _notes(options: MapBenchOptions) -> list[str]:
     return [
         "Times are from reading the scenario and its map file to the path, each call a fresh read; cvxnav, the grid "
-        "planner and BIT* are called in turns (an order shuffled per round), after one untimed call each.",
+        "planner and BIT* are called in turns (an order shuffled per round), after one untimed call each, each scenario "
+        "(and each tiled depot) in a process of its own: what ran before in a process (another map's large arrays, "
+        "which the C library's allocator then keeps for reuse) moved the grid planner's time on the depot by a third.",
         "grid (NavFn-like): a cell is free when its centre is at least the margin plus half a cell from the nearest "
         "blocked cell's centre (scipy's exact EDT), then an 8-connected Dijkstra over the whole grid (scipy.sparse.csgraph).",
         f"BIT*: valid = a free cell of that inflated grid, motions checked every grid cell or 0.05 m (the shorter); it "

@@ -242,3 +242,26 @@ def test_bitstar_on_a_map_plans_through_every_goal_in_order(tmp_path, dubins: bo
     assert attempt.path is not None, attempt.reason
     judged = judge(load_scenario(tmp_path / "two-goals.json"), attempt.path)
     assert judged.reaches and not judged.collides
+
+
+def test_a_map_case_is_timed_in_a_process_of_its_own_its_progress_and_failure_relayed(tmp_path):
+    """`cvxnav bench` on maps runs each case in a spawned process (what ran before in a process moves the
+    grid planner's time): the child's progress reaches the caller, its result comes back, and a case that
+    fails there fails here with the child's traceback."""
+    from cvxnav.bench.maps import MapBenchOptions, MapCase, _isolated, _scenario_doc, _write_map, bench_case
+
+    pixels = np.full((80, 120), 254)  # a 6 × 4 m room at 0.05 m, walled
+    pixels[[0, -1], :] = pixels[:, [0, -1]] = 0
+    doc = _scenario_doc("room", map_path=_write_map(tmp_path, "room", pixels, resolution_m=0.05),
+                        start=(1.0, 2.0, 0.0), goal=(5.0, 2.0), description="")
+    (tmp_path / "room.json").write_text(json.dumps(doc))
+    options = MapBenchOptions(repeats=1, min_timed_s=0.0)
+    steps: list[str] = []
+    result = _isolated(bench_case, MapCase(tmp_path / "room.json", "a room"), options, False, on_step=steps.append)
+    assert steps[0] == "room: cold calls" and "room: in turns, round 1" in steps
+    rows = {row.planner: row for row in result.planners}
+    assert set(rows) == {"cvxnav", "grid (NavFn-like)"} and all(row.success for row in rows.values())
+    assert rows["cvxnav"].length_m == pytest.approx(4.0, abs=1e-3)  # straight along the heading
+
+    with pytest.raises(RuntimeError, match=r"(?s)failed in its process.*ScenarioError.*missing\.json"):
+        _isolated(bench_case, MapCase(tmp_path / "missing.json", "none"), options, False, on_step=steps.append)
