@@ -32,6 +32,7 @@ running the grid planner on it.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import multiprocessing
@@ -404,7 +405,11 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
                   with_ompl: bool, on_step: Callable[[str], None] = lambda text: None) -> MapBenchResult:
     """Every planner on every case in turns, the growth run and the memory figure; each case and each
     growth point in a process of its own (`_isolated`)."""
-    results = [_isolated(bench_case, case, options, with_ompl, on_step=on_step) for case in cases]
+    results = []
+    for case in cases:
+        result = _isolated(bench_case, case, options, with_ompl, False, on_step=on_step)
+        kept = _isolated(bench_case, case, options, False, True, on_step=on_step)
+        results.append(result if kept is None else result.model_copy(update={"planners_kept_memory": kept.planners}))
     growth = []
     if shared is not None and options.growth_tiles and (shared / "maps" / "depot.pgm").is_file():
         on_step("growth: the depot tiled")
@@ -421,12 +426,16 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
                           notes=_notes(options))
 
 
-def bench_case(case: MapCase, options: MapBenchOptions, with_ompl: bool, *,
-               on_step: Callable[[str], None]) -> MapScenarioResult:
-    """Every planner on one case, in turns, after one untimed call each."""
+def bench_case(case: MapCase, options: MapBenchOptions, with_ompl: bool, keep_memory: bool = False, *,
+               on_step: Callable[[str], None]) -> MapScenarioResult | None:
+    """Every planner on one case, in turns, after one untimed call each. `keep_memory`: first set the C
+    library to keep freed memory for reuse (`_keep_freed_memory`); None where it cannot."""
+    if keep_memory and not _keep_freed_memory():
+        return None
     scenario = load_scenario(case.path)
     grid = _grid(scenario)
-    on_step(f"{scenario.name}: cold calls")
+    label = f"{scenario.name} (freed memory kept)" if keep_memory else scenario.name
+    on_step(f"{label}: cold calls")
     cold = call_cvxnav(case.path)  # warms the process (imports, compiled problems) as for every peer
     call_grid(case.path)
     target = case.reference_m or (polyline_length(cold.path) if cold.path is not None else None)
@@ -444,7 +453,7 @@ def bench_case(case: MapCase, options: MapBenchOptions, with_ompl: bool, *,
         return len(done) < options.repeats or (len(done) < options.max_repeats and timed < options.min_timed_s)
 
     attempts = in_turns(calls, wants_more, seed=options.seed,
-                        on_round=lambda k: on_step(f"{scenario.name}: in turns, round {k + 1}"))
+                        on_round=lambda k: on_step(f"{label}: in turns, round {k + 1}"))
     rows = [_summary(name, scenario, done, reference_m=case.reference_m, sampling=name.startswith("BIT"))
             for name, done in attempts.items()]
     return MapScenarioResult(
@@ -464,6 +473,22 @@ def growth_point(tiles: int, path: Path, repeats: int, seed: int, *, on_step: Ca
                           cvxnav_ms=statistics.median(1e3 * a.time_s for a in done[CVXNAV]),
                           grid_ms=statistics.median(1e3 * a.time_s for a in done[GRID]),
                           ok=all(a.path is not None for a in done[CVXNAV]))
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
+
+
+def _keep_freed_memory() -> bool:
+    """Set this process's C library to keep freed memory for reuse, as a planner that keeps its buffers
+    between plans does (Nav2's NavFn allocates its arrays once per map size): blocks up to 32 MiB (its
+    largest) from the heap instead of fresh pages from the system, and the heap never trimmed back
+    (glibc's `mallopt`, which the variables MALLOC_MMAP_THRESHOLD_ and MALLOC_TRIM_THRESHOLD_ also set);
+    whether it could (no `mallopt`: not glibc)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, 32 << 20)) and bool(mallopt(_M_TRIM_THRESHOLD, 1 << 30))
 
 
 def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], None]) -> _T:
@@ -534,14 +559,17 @@ def peak_rss_mib(module: str, *args: str, work_dir: Path) -> float:
 
 def _targets(results: list[MapScenarioResult], growth: list[MapGrowthPoint], memory: dict[str, float]) -> MapTargets:
 
-    ratios, intervals, lengths = {}, {}, {}
+    ratios, intervals, kept, kept_intervals, lengths = {}, {}, {}, {}, {}
     for scenario in results:
-        rows = {p.planner: p for p in scenario.planners}
-        ours, grid = rows.get(CVXNAV), rows.get(GRID)
-        if ours is not None and grid is not None and ours.time_median_ms and grid.time_median_ms:
-            ratios[scenario.name] = ours.time_median_ms / grid.time_median_ms
-            if (interval := ratio_interval(ours.times_ms, grid.times_ms)) is not None:
-                intervals[scenario.name] = interval
+        for planners, into, spread in ((scenario.planners, ratios, intervals),
+                                       (scenario.planners_kept_memory, kept, kept_intervals)):
+            rows = {p.planner: p for p in planners}
+            ours, grid = rows.get(CVXNAV), rows.get(GRID)
+            if ours is not None and grid is not None and ours.time_median_ms and grid.time_median_ms:
+                into[scenario.name] = ours.time_median_ms / grid.time_median_ms
+                if (interval := ratio_interval(ours.times_ms, grid.times_ms)) is not None:
+                    spread[scenario.name] = interval
+        ours = next((p for p in scenario.planners if p.planner == CVXNAV), None)
         if ours is not None and ours.length_ratio is not None:
             lengths[scenario.name] = ours.length_ratio
     exponent = {}
@@ -550,6 +578,7 @@ def _targets(results: list[MapScenarioResult], growth: list[MapGrowthPoint], mem
         for name, values in ((CVXNAV, [g.cvxnav_ms for g in growth]), (GRID, [g.grid_ms for g in growth])):
             exponent[name] = float(np.polyfit(x, np.log(values), 1)[0])
     return MapTargets(length_ratio_vs_reference=lengths, time_ratio_vs_grid=ratios, time_ratio_vs_grid_interval=intervals,
+                      time_ratio_vs_grid_kept_memory=kept, time_ratio_vs_grid_kept_memory_interval=kept_intervals,
                       growth_exponent_in_cells=exponent, peak_rss_mib=memory.get(CVXNAV))
 
 
@@ -558,7 +587,10 @@ def _notes(options: MapBenchOptions) -> list[str]:
         "Times are from reading the scenario and its map file to the path, each call a fresh read; cvxnav, the grid "
         "planner and BIT* are called in turns (an order shuffled per round), after one untimed call each, each scenario "
         "(and each tiled depot) in a process of its own: what ran before in a process (another map's large arrays, "
-        "which the C library's allocator then keeps for reuse) moved the grid planner's time on the depot by a third.",
+        "which the C library's allocator then keeps for reuse) moved the grid planner's time on the depot by a third. "
+        "cvxnav and the grid planner are then timed again in a process whose C library keeps freed memory for reuse "
+        "(glibc's mallopt: as a planner that keeps its buffers between plans): the grid planner's time falls by up "
+        "to a third there, cvxnav's hardly moves.",
         "grid (NavFn-like): a cell is free when its centre is at least the margin plus half a cell from the nearest "
         "blocked cell's centre (scipy's exact EDT), then an 8-connected Dijkstra over the whole grid (scipy.sparse.csgraph).",
         f"BIT*: valid = a free cell of that inflated grid, motions checked every grid cell or 0.05 m (the shorter); it "
@@ -604,6 +636,16 @@ def map_tables(result: MapBenchResult) -> list[tuple[str, tuple[str, ...], list[
                          _num(p.time_p90_ms, ".0f"), _num(ratio, ".2f"), stages,
                          "; ".join(note for note in (p.reason, reached) if note)[:160]))
     tables = [("maps: planners from reading the map file to the path", header, rows)]
+    kept = []
+    for scenario in result.scenarios:
+        times = {p.planner: p.time_median_ms for p in scenario.planners_kept_memory}
+        if times.get(CVXNAV) and times.get(GRID):
+            spread = result.targets.time_ratio_vs_grid_kept_memory_interval.get(scenario.name)
+            kept.append((scenario.name, f"{times[CVXNAV]:.0f}", f"{times[GRID]:.0f}",
+                         f"{times[CVXNAV] / times[GRID]:.2f}" + (f" ({spread[0]:.2f}–{spread[1]:.2f})" if spread else "")))
+    if kept:
+        tables.append(("maps: cvxnav and the grid planner with the C library keeping freed memory",
+                       ("scenario", "cvxnav median ms", "grid median ms", "cvxnav ÷ grid (95 % interval)"), kept))
     if result.growth:
         tables.append(("maps: growth with map area (the depot tiled, depot-1's query)",
                        ("tiles", "cells", "cvxnav median ms", "grid median ms", "cvxnav ÷ grid", "ok"),
@@ -622,6 +664,10 @@ def map_target_lines(result: MapBenchResult) -> list[str]:
         spread = t.time_ratio_vs_grid_interval.get(name)
         spread_text = f" (95 % interval {spread[0]:.2f}–{spread[1]:.2f})" if spread else ""
         lines.append(f"time ÷ grid planner, {name} (target ≤ 1, goal ≤ 0.3): {ratio:.2f}{spread_text}")
+    for name, ratio in t.time_ratio_vs_grid_kept_memory.items():
+        spread = t.time_ratio_vs_grid_kept_memory_interval.get(name)
+        spread_text = f" (95 % interval {spread[0]:.2f}–{spread[1]:.2f})" if spread else ""
+        lines.append(f"time ÷ grid planner with freed memory kept, {name}: {ratio:.2f}{spread_text}")
     for name, exponent in t.growth_exponent_in_cells.items():
         lines.append(f"growth exponent of {name}'s time in map cells (tiled depot): {exponent:.2f}")
     if t.peak_rss_mib is not None:

@@ -11,8 +11,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT = "cvxnav.bench/5"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios'
-# intervals; /4: the fit on several point sets (`FitResult.point_sets`); /5: occupancy-grid maps (`maps`)
+FORMAT = "cvxnav.bench/6"  # /2: `ScalingPoint.local_exponent`; /3: every call's time (`times_ms`), the ratios'
+# intervals; /4: the fit on several point sets (`FitResult.point_sets`); /5: occupancy-grid maps (`maps`); /6: the
+# maps' cvxnav and grid planner timed again with the allocator keeping freed memory (`planners_kept_memory`)
 
 
 class _Frozen(BaseModel):
@@ -127,6 +128,9 @@ class MapScenarioResult(_Frozen):
     reference_m: float | None  # REFERENCE.json's true-geometry optimum (the depot queries)
     target_m: float | None  # BIT*'s: the reference, else cvxnav's length
     planners: list[MapPlannerResult]
+    # cvxnav and the grid planner again, in a process whose C library keeps freed memory for reuse (empty where
+    # the C library has no `mallopt`)
+    planners_kept_memory: list[MapPlannerResult] = []
 
 
 class MapGrowthPoint(_Frozen):
@@ -143,6 +147,8 @@ class MapTargets(_Frozen):
     length_ratio_vs_reference: dict[str, float]  # cvxnav length ÷ REFERENCE (target ≤ 1.02)
     time_ratio_vs_grid: dict[str, float]  # cvxnav median ÷ grid planner median (target ≤ 1, goal ≤ 0.3)
     time_ratio_vs_grid_interval: dict[str, tuple[float, float]] = {}  # its 95 % bootstrap interval
+    time_ratio_vs_grid_kept_memory: dict[str, float] = {}  # the same with freed memory kept (`planners_kept_memory`)
+    time_ratio_vs_grid_kept_memory_interval: dict[str, tuple[float, float]] = {}
     growth_exponent_in_cells: dict[str, float] = {}  # slope of log time on log cells over the tiled depots
     peak_rss_mib: float | None = None  # cvxnav plan on the 30 × 50 m map (target ≤ 1024)
 
@@ -156,7 +162,7 @@ class MapBenchResult(_Frozen):
 
 
 class BenchReport(_Frozen):
-    format: Literal["cvxnav.bench/5"] = FORMAT
+    format: Literal["cvxnav.bench/6"] = FORMAT
     command: str
     machine: Machine
     quick: bool

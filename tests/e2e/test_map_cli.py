@@ -124,14 +124,18 @@ def test_bench_on_a_map_file_puts_cvxnav_beside_the_grid_planner(shared_dir: Pat
                   "--budget-s", "0.5", cwd=tmp_path, timeout_s=600)
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads((tmp_path / "bench.json").read_text())
-    assert report["format"] == "cvxnav.bench/5" and report["scenarios"] == []
+    assert report["format"] == "cvxnav.bench/6" and report["scenarios"] == []
     rows = {row["planner"]: row for row in report["maps"]["scenarios"][0]["planners"]}
     assert rows["cvxnav"]["success"] and rows["grid (NavFn-like)"]["success"]
     assert rows["cvxnav"]["length_ratio"] <= 1.02
     assert rows["cvxnav"]["stages_ms"]["load"] > 0.0 and rows["grid (NavFn-like)"]["stages_ms"]["inflate"] > 0.0
     assert "depot-1" in report["maps"]["targets"]["time_ratio_vs_grid"]
+    kept = {row["planner"]: row for row in report["maps"]["scenarios"][0]["planners_kept_memory"]}
+    assert set(kept) == {"cvxnav", "grid (NavFn-like)"} and all(row["success"] for row in kept.values())
+    assert "depot-1" in report["maps"]["targets"]["time_ratio_vs_grid_kept_memory"]
     if importlib.util.find_spec("ompl") is not None:  # the bench extra: BIT* for a point and for a Dubins car
         for name in ("BIT* (OMPL, point)", "BIT* (OMPL, Dubins)"):
             assert rows[name]["repeats"] == 1 and (rows[name]["success"] or rows[name]["reason"])
             assert not rows[name]["collision"]
-    assert "time ÷ grid planner, depot-1" in (tmp_path / "bench.md").read_text()
+    markdown = (tmp_path / "bench.md").read_text()
+    assert "time ÷ grid planner, depot-1" in markdown and "time ÷ grid planner with freed memory kept, depot-1" in markdown
