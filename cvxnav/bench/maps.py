@@ -205,11 +205,14 @@ class MapAttempt:
 
 
 def call_cvxnav(path: Path) -> MapAttempt:
-    """`cvxnav plan`'s work in this process: read the scenario and its map, plan, verify."""
+    """`cvxnav plan`'s work in this process: read the scenario and its map, plan, verify; nothing kept from
+    an earlier call (the ellipse stacks, the refinement's compiled subproblems)."""
     from services.geometry import EllipseStack
+    from services.planner.refine import forget_problems
     from cvxnav.plan import plan_scenario
 
     EllipseStack.forget()
+    forget_problems()
     t0 = time.perf_counter()
     scenario = load_scenario(path)
     plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - t0))

@@ -321,6 +321,22 @@ def test_direct_clarabel_route_agrees_with_the_cvxpy_model():
     assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
 
 
+def test_forgotten_subproblems_are_compiled_afresh_and_refine_to_the_same_path():
+    """What `cvxnav bench` clears before each timed plan: the compiled subproblems (and their solvers'
+    set-ups) go, and the next refinement, building its own, finds the same path."""
+    from services.planner.refine import _problem, forget_problems, refine
+
+    obstacles = [Ellipse.circle(center=[4.0, 0.3], radius=1.2)]
+    legs = tangent_route(start=np.array([0.0, 0.0]), goals=np.array([[8.0, 0.0]]), ellipses=obstacles, **BOX)
+    first = refine(legs=legs, ellipses=obstacles, max_curvature=0.8, heading_rad=0.0, **BOX)
+    assert _problem.cache_info().currsize >= 1
+    forget_problems()
+    assert _problem.cache_info().currsize == 0
+    again = refine(legs=legs, ellipses=obstacles, max_curvature=0.8, heading_rad=0.0, **BOX)
+    assert _problem.cache_info().misses >= 1 and _problem.cache_info().currsize >= 1
+    assert np.abs(again.points - first.points).max() < 1e-8  # the solver's tolerance (a fresh set-up)
+
+
 @pytest.mark.parametrize("heading_rad, binds", [(0.0, False), (1.0, True)])
 def test_the_rows_the_first_clarabel_solve_leaves_out_hold_where_they_bind(heading_rad, binds):
     """Clarabel first solves without the step cones and box rows past the first turning radius. Heading
