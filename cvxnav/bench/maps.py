@@ -499,11 +499,10 @@ def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], N
     progress relayed to `on_step`, its result (or its traceback, raised here) handed back.
 
     What ran before in a process moves a planner's time: numpy's large arrays come from the C library's
-    allocator, which, once a larger map's arrays were freed, keeps blocks of the depot's size for reuse
-    instead of handing them back to the system and faulting them in afresh on the next call. Run after
-    ACES in one process the grid planner planned depot-1 in 41 ms, run first in 59 (docs/maps.md, stop
-    48): a bench whose figures depend on the order of its scenarios. In a process of its own each case
-    starts from the state a planner serving that map alone would be in."""
+    allocator, which, once a larger map's arrays were freed, keeps blocks of a smaller map's size for
+    reuse instead of handing them back to the system and faulting them in afresh on the next call, so the
+    figures would depend on the order of the scenarios (docs/maps.md has the measurement). In a process
+    of its own each case starts from the state a planner serving that map alone would be in."""
     context = multiprocessing.get_context("spawn")
     messages = context.Queue()
     process = context.Process(target=_reporting, args=(work, args, messages), daemon=True)
