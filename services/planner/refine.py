@@ -282,19 +282,14 @@ class _ClarabelPathProblem:
                         (t + 2, ys(mid + offset), np.full(n - 2, weight))]
         self.curvature_cones = block(3 * (n - 2), entries)
 
-        r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-        self._entries = (r, c)
-        self._values = v
-        # CSC order of the entries: build once with the entry index as value, read back the permutation.
-        marker = sparse.csc_matrix((np.arange(1, len(v) + 1, dtype=float), (r, c)), shape=(self._row, self.size))
-        self._order = marker.data.astype(int) - 1
-        self._A = sparse.csc_matrix((v, (r, c)), shape=(self._row, self.size))
-        self._A.data = v[self._order]
+        # The entries; the matrix is assembled when the pinned points' columns are known (`_rebuild_pins`).
+        self._entries = (np.concatenate(rows), np.concatenate(cols))
+        self._values = np.concatenate(vals)
+        self._A: sparse.csc_matrix | None = None
+        self._order = np.zeros(0, dtype=np.intp)  # entry k of the matrix's data is value _order[k]
         self._b = np.zeros(self._row)
         self._b[self.step_cones.start : self.step_cones.stop : 3] = step_m
-        D = sparse.diags([np.ones(2 * (n - 1)), -np.ones(2 * (n - 1))], [2, 0], shape=(2 * (n - 1), nz))
-        P = sparse.block_diag([2.0 * (D.T @ D), sparse.csc_matrix((n - 2 + e, n - 2 + e))]).tocsc()
-        self._P = sparse.triu(P).tocsc()
+        self._P = _path_hessian(n, self.size)
         self._q = np.concatenate([np.zeros(nz), np.full(n - 2 + e, slack_weight)])
         self._cones = [
             clarabel.ZeroConeT(zero_rows),
@@ -373,13 +368,26 @@ class _ClarabelPathProblem:
         local = r[idx] - self.pin_rows.start  # 2k for x of the k-th pinned point, 2k + 1 for y
         c[idx] = 2 * pinned[local // 2] + local % 2
         self._values[idx] = 1.0
-        marker = sparse.csc_matrix(
-            (np.arange(1, len(self._values) + 1, dtype=float), (r, c)), shape=(self._row, self.size)
-        )
-        self._order = marker.data.astype(int) - 1
-        self._A = sparse.csc_matrix((self._values, (r, c)), shape=(self._row, self.size))
+        # CSC order: by column, then row (the entries are distinct, explicit zeros kept).
+        self._order = np.lexsort((r, c))
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(c, minlength=self.size))])
+        self._A = sparse.csc_matrix((self._values[self._order], r[self._order], indptr), shape=(self._row, self.size))
         self._solver = None
         self._pinned_columns = tuple(pinned)
+
+
+def _path_hessian(n: int, size: int) -> sparse.csc_matrix:
+    """The upper triangle of P = 2 DᵀD, D the steps zᵢ₊₁ − zᵢ of n points (x and y interleaved), so that
+    ½ xᵀPx = Σ‖Δz‖², padded with zero columns to `size` (the slacks), in CSC form: column j ≥ 2 holds
+    −2 in row j − 2 (the step from point j/2 − 1) and 2 × the number of steps at its point in row j."""
+    nz = 2 * n
+    steps = np.full(nz, 2.0)
+    steps[[0, 1, nz - 2, nz - 1]] = 1.0  # the first and the last point have one step each
+    j = np.arange(2, nz)
+    indices = np.concatenate([[0, 1], np.column_stack([j - 2, j]).ravel()])
+    data = np.concatenate([2.0 * steps[:2], np.column_stack([np.full(nz - 2, -2.0), 2.0 * steps[2:]]).ravel()])
+    indptr = np.concatenate([[0, 1], 2 + 2 * np.arange(nz - 1), np.full(size - nz, 2 * nz - 2)])
+    return sparse.csc_matrix((data, indices, indptr), shape=(size, size))
 
 
 class _ClarabelOnDemand:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import sparse
 
 from services.geometry import Ellipse, EllipseStack, distance, polyline_length
 from services.planner.core import goals_ahead, intersected, plan_path, stay_at_start
@@ -319,6 +320,18 @@ def test_direct_clarabel_route_agrees_with_the_cvxpy_model():
     }
     assert results["cvxpy"].iterations == results["clarabel"].iterations
     assert np.abs(results["cvxpy"].points - results["clarabel"].points).max() < 1e-4
+
+
+@pytest.mark.parametrize("n, slacks", [(2, 0), (3, 4), (96, 130)])
+def test_the_path_hessian_s_quadratic_form_is_the_sum_of_squared_steps(n, slacks):
+    from services.planner.refine import _path_hessian
+
+    upper = _path_hessian(n, 2 * n + slacks)
+    P = (upper + upper.T - sparse.diags(upper.diagonal())).toarray()
+    x = np.random.default_rng(n).normal(size=2 * n + slacks)
+    z = x[: 2 * n].reshape(n, 2)
+    assert 0.5 * x @ P @ x == pytest.approx(np.sum(np.diff(z, axis=0) ** 2), rel=1e-12)
+    assert upper.has_sorted_indices and np.allclose(upper.toarray(), np.triu(upper.toarray()))
 
 
 def test_forgotten_subproblems_are_compiled_afresh_and_refine_to_the_same_path():
