@@ -803,7 +803,9 @@ def refine_in_windows(
                 solved[a, b] = _refine_window(z, a, b, goal_indices=goal_indices, ellipses=ellipses,
                                               bounds_min=bounds_min, bounds_max=bounds_max,
                                               max_curvature=max_curvature, heading_rad=heading_rad, settings=whole)
-        unmet = [(solved[a, b].curvature_slack > _MET_SLACK and not _stuck(solved, a, b))
+        unmet = [(solved[a, b].curvature_slack > _MET_SLACK and not _stuck(solved, a, b)
+                  and not _broken_at_goals(solved[a, b], _cuts(a, b, n=n, goal_indices=goal_indices), goal_indices,
+                                           kappa=settings.curvature_met_factor * max_curvature, radius_m=radius))
                  or _held_by_its_ends(z, a, b, solved[a, b].points, reach) for a, b in spans]
         if not any(unmet):
             break
@@ -843,6 +845,28 @@ def _stuck(solved: dict[tuple[int, int], Refined], a: int, b: int) -> bool:
     grew_from = [slack for (lo, hi), slack in inner.items()
                  if not any(c <= lo and hi <= d and (c, d) != (lo, hi) for c, d in inner)]
     return bool(grew_from) and solved[a, b].curvature_slack >= _STUCK_FACTOR * max(grew_from)
+
+
+def _broken_at_goals(window: Refined, cuts: list[int], goal_indices: tuple[int, ...], *, kappa: float,
+                     radius_m: float) -> bool:
+    """Whether every point where a window's path breaks the curvature bound `kappa` lies within two turning
+    radii (along it) of a goal before the route's last where the path turns back: its directions a turning
+    radius before and after the goal more than a right angle apart (`cuts`: the route's points the
+    window's legs end at, `_cuts`). The curve must loop through such a goal, which no wider refinement of
+    a route that goes there and back bends into: the window is not widened, and its slack tells the caller
+    to loop through the goals (`services.planner.core`)."""
+    last = goal_indices[-1]
+    goals = np.array([window.goal_indices[k] for k, cut in enumerate(cuts) if cut in goal_indices and cut != last],
+                     dtype=np.intp)
+    broken = 1 + np.flatnonzero(curvature_broken(window.points, kappa))
+    if not len(goals) or not len(broken):
+        return False
+    z, along = window.points, arc_lengths(window.points)
+    before = z[np.searchsorted(along, along[goals] - radius_m)]
+    after = z[np.minimum(np.searchsorted(along, along[goals] + radius_m), len(z) - 1)]
+    back = goals[np.einsum("ij,ij->i", z[goals] - before, after - z[goals]) < 0.0]
+    return bool(len(back)) and bool(
+        np.all(np.min(np.abs(along[broken, None] - along[back][None, :]), axis=1) <= 2.0 * radius_m))
 
 
 def _merged(intervals: list[tuple[float, float]], *, gap: float) -> list[tuple[float, float]]:

@@ -843,3 +843,27 @@ def test_a_route_that_breaks_the_bound_at_a_goal_is_not_led_in_again_from_the_st
     # lead-in, searched before this change, nor a turn onto the route); and the enlarged ones.
     assert sum(1 for lead, extra in searched if lead is not None and extra == 0.0) == 1
     assert any(extra > 0.0 for _, extra in searched)
+
+
+def test_a_window_broken_only_where_the_route_turns_back_at_a_goal_is_not_widened():
+    """`refine_in_windows` widens a window whose curve breaks the bound, except where every break lies
+    within two turning radii of a goal before the last that the path turns back at: a there-and-back route
+    needs a loop through the goal, which the caller searches for (`lattice.through`), and a wider window
+    only costs more solves. A goal at a right-angle corner is widened round as any other break."""
+    from services.planner.refine import Refined, _broken_at_goals
+
+    out = np.column_stack([np.linspace(0.0, 3.0, 31), np.zeros(31)])  # 3 m east to a goal, then back
+    hairpin = np.vstack([out, out[-2::-1] + [0.0, 0.05]])  # 5 cm over
+    north = np.column_stack([np.zeros(20), 0.05 + 0.1 * np.arange(1, 21)])  # then a right angle, 3 m on
+    cuts = [100, 160, 161]  # the route's points the window's legs end at: a goal, then the window's last two
+
+    def window(path: np.ndarray) -> Refined:
+        return Refined(points=path, goal_indices=(30, len(path) - 2, len(path) - 1), iterations=3,
+                       curvature_slack=0.1)
+
+    assert _broken_at_goals(window(hairpin), cuts, (100, 400), kappa=1.0, radius_m=1.0)
+    assert not _broken_at_goals(window(np.vstack([hairpin, north])), cuts, (100, 400), kappa=1.0, radius_m=1.0)
+    assert not _broken_at_goals(window(hairpin), cuts, (100,), kappa=1.0, radius_m=1.0)  # the last goal
+    assert not _broken_at_goals(window(hairpin), cuts, (50, 400), kappa=1.0, radius_m=1.0)  # no goal in it
+    corner = np.vstack([out, out[-1] + np.column_stack([np.zeros(30), 0.1 * np.arange(1, 31)])])  # a right angle
+    assert not _broken_at_goals(window(corner), cuts, (100, 400), kappa=1.0, radius_m=1.0)  # not turned back
