@@ -56,12 +56,15 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     the planning half of `cvxnav plan`), the smoothed curve verified or no path.
 
     Timed as the peers are, on `problem.grown` (the fit excluded), building the planner's arrays of the
-    ellipses (`EllipseStack`) included: the stacks kept from the last call are dropped first.
+    ellipses (`EllipseStack`) and its convex subproblems included: the stacks and compiled subproblems
+    kept from the last call are dropped first (the peers set their planners up afresh on each call too).
     """
     from cvxnav.plan import plan_on_model
     from services.planner.core import why_no_path
+    from services.planner.refine import forget_problems
 
     EllipseStack.forget()
+    forget_problems()
     t0 = time.perf_counter()
     plan, smoothed = plan_on_model(problem.scenario, problem.grown)
     elapsed = time.perf_counter() - t0
