@@ -767,8 +767,9 @@ def refine_in_windows(
     there), is widened, by twice as much each time, and merged with the windows it reaches; one that
     reaches the whole route is the whole refinement (`refine` without windows). A widened window that
     meets its bound no better than the narrower ones it grew from is not widened again (`_stuck`): the
-    result keeps its slack, and the caller tries another route. The caller verifies the path whole, as
-    any refined path.
+    result keeps its slack, and the caller tries another route. Nor is one that breaks the bound only
+    where its path turns back at a goal before the last (`_broken_at_goals`): the caller loops through the
+    goals there. The caller verifies the path whole, as any refined path.
     """
     whole = replace(settings, window_radii=None)
     total = sum(polyline_length(leg) for leg in legs)
