@@ -207,12 +207,10 @@ class MapAttempt:
 def call_cvxnav(path: Path) -> MapAttempt:
     """`cvxnav plan`'s work in this process: read the scenario and its map, plan, verify; nothing kept from
     an earlier call (the ellipse stacks, the refinement's compiled subproblems)."""
-    from services.geometry import EllipseStack
-    from services.planner.refine import forget_problems
+    from cvxnav.bench.planners import forget_kept
     from cvxnav.plan import plan_scenario
 
-    EllipseStack.forget()
-    forget_problems()
+    forget_kept()
     t0 = time.perf_counter()
     scenario = load_scenario(path)
     plan = plan_scenario(scenario, load_ms=1e3 * (time.perf_counter() - t0))
@@ -410,8 +408,8 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
     growth point in a process of its own (`_isolated`)."""
     results = []
     for case in cases:
-        result = _isolated(bench_case, case, options, with_ompl, False, on_step=on_step)
-        kept = _isolated(bench_case, case, options, False, True, on_step=on_step)
+        result = _isolated(bench_case, case, options, with_ompl=with_ompl, on_step=on_step)
+        kept = _isolated(bench_case, case, options, with_ompl=False, keep_memory=True, on_step=on_step)
         results.append(result if kept is None else result.model_copy(update={"planners_kept_memory": kept.planners}))
     growth = []
     if shared is not None and options.growth_tiles and (shared / "maps" / "depot.pgm").is_file():
@@ -429,7 +427,7 @@ def run_map_bench(cases: list[MapCase], *, options: MapBenchOptions, work_dir: P
                           notes=_notes(options))
 
 
-def bench_case(case: MapCase, options: MapBenchOptions, with_ompl: bool, keep_memory: bool = False, *,
+def bench_case(case: MapCase, options: MapBenchOptions, *, with_ompl: bool, keep_memory: bool = False,
                on_step: Callable[[str], None]) -> MapScenarioResult | None:
     """Every planner on one case, in turns, after one untimed call each. `keep_memory`: first set the C
     library to keep freed memory for reuse (`_keep_freed_memory`); None where it cannot."""
@@ -494,8 +492,8 @@ def _keep_freed_memory() -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, 32 << 20)) and bool(mallopt(_M_TRIM_THRESHOLD, 1 << 30))
 
 
-def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], None]) -> _T:
-    """`work(*args, on_step=...)` in a fresh process (spawned: it inherits nothing but the arguments), its
+def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], None], **kwargs: object) -> _T:
+    """`work(*args, **kwargs, on_step=...)` in a fresh process (spawned: it inherits nothing but the arguments), its
     progress relayed to `on_step`, its result (or its traceback, raised here) handed back.
 
     What ran before in a process moves a planner's time: numpy's large arrays come from the C library's
@@ -505,7 +503,7 @@ def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], N
     of its own each case starts from the state a planner serving that map alone would be in."""
     context = multiprocessing.get_context("spawn")
     messages = context.Queue()
-    process = context.Process(target=_reporting, args=(work, args, messages), daemon=True)
+    process = context.Process(target=_reporting, args=(work, args, kwargs, messages), daemon=True)
     process.start()
     try:
         while True:
@@ -532,10 +530,10 @@ def _isolated(work: Callable[..., _T], *args: object, on_step: Callable[[str], N
             process.join()
 
 
-def _reporting(work: Callable[..., object], args: tuple, messages) -> None:
+def _reporting(work: Callable[..., object], args: tuple, kwargs: dict, messages) -> None:
     """`_isolated`'s child: run the work, sending its progress and then its result or traceback."""
     try:
-        messages.put(("done", work(*args, on_step=lambda text: messages.put(("step", text)))))
+        messages.put(("done", work(*args, **kwargs, on_step=lambda text: messages.put(("step", text)))))
     except BaseException:  # the parent raises it, with this traceback
         messages.put(("error", traceback.format_exc()))
 
@@ -640,11 +638,10 @@ def map_tables(result: MapBenchResult) -> list[tuple[str, tuple[str, ...], list[
     tables = [("maps: planners from reading the map file to the path", header, rows)]
     kept = []
     for scenario in result.scenarios:
-        times = {p.planner: p.time_median_ms for p in scenario.planners_kept_memory}
-        if times.get(CVXNAV) and times.get(GRID):
+        if (ratio := result.targets.time_ratio_vs_grid_kept_memory.get(scenario.name)) is not None:
+            times = {p.planner: p.time_median_ms for p in scenario.planners_kept_memory}
             spread = result.targets.time_ratio_vs_grid_kept_memory_interval.get(scenario.name)
-            kept.append((scenario.name, f"{times[CVXNAV]:.0f}", f"{times[GRID]:.0f}",
-                         f"{times[CVXNAV] / times[GRID]:.2f}" + (f" ({spread[0]:.2f}–{spread[1]:.2f})" if spread else "")))
+            kept.append((scenario.name, f"{times[CVXNAV]:.0f}", f"{times[GRID]:.0f}", f"{ratio:.2f}{_interval(spread)}"))
     if kept:
         tables.append(("maps: cvxnav and the grid planner with the C library keeping freed memory",
                        ("scenario", "cvxnav median ms", "grid median ms", "cvxnav ÷ grid (95 % interval)"), kept))
@@ -659,17 +656,20 @@ def map_tables(result: MapBenchResult) -> list[tuple[str, tuple[str, ...], list[
     return tables
 
 
+def _interval(spread: tuple[float, float] | None, label: str = "") -> str:
+    """A ratio's 95 % interval as shown after the ratio, " (label lo–hi)"; "" without one."""
+    return f" ({label}{spread[0]:.2f}–{spread[1]:.2f})" if spread else ""
+
+
 def map_target_lines(result: MapBenchResult) -> list[str]:
     t = result.targets
     lines = [f"length ÷ REFERENCE, {name} (target ≤ 1.02): {ratio:.4f}" for name, ratio in t.length_ratio_vs_reference.items()]
     for name, ratio in t.time_ratio_vs_grid.items():
-        spread = t.time_ratio_vs_grid_interval.get(name)
-        spread_text = f" (95 % interval {spread[0]:.2f}–{spread[1]:.2f})" if spread else ""
-        lines.append(f"time ÷ grid planner, {name} (target ≤ 1, goal ≤ 0.3): {ratio:.2f}{spread_text}")
+        spread = _interval(t.time_ratio_vs_grid_interval.get(name), "95 % interval ")
+        lines.append(f"time ÷ grid planner, {name} (target ≤ 1, goal ≤ 0.3): {ratio:.2f}{spread}")
     for name, ratio in t.time_ratio_vs_grid_kept_memory.items():
-        spread = t.time_ratio_vs_grid_kept_memory_interval.get(name)
-        spread_text = f" (95 % interval {spread[0]:.2f}–{spread[1]:.2f})" if spread else ""
-        lines.append(f"time ÷ grid planner with freed memory kept, {name}: {ratio:.2f}{spread_text}")
+        spread = _interval(t.time_ratio_vs_grid_kept_memory_interval.get(name), "95 % interval ")
+        lines.append(f"time ÷ grid planner with freed memory kept, {name}: {ratio:.2f}{spread}")
     for name, exponent in t.growth_exponent_in_cells.items():
         lines.append(f"growth exponent of {name}'s time in map cells (tiled depot): {exponent:.2f}")
     if t.peak_rss_mib is not None:

@@ -51,6 +51,15 @@ def peer_status() -> dict[str, str]:
 # --------------------------------------------------------------------------- cvxnav
 
 
+def forget_kept() -> None:
+    """Drop what cvxnav keeps between plans in a process (the ellipse stacks, the refinement's compiled
+    subproblems), so that a timed call builds them as a new query does."""
+    from services.planner.refine import forget_problems
+
+    EllipseStack.forget()
+    forget_problems()
+
+
 def plan_cvxnav(problem: BenchProblem) -> Attempt:
     """cvxnav's planning on the model every planner is handed: optimise + smooth (`cvxnav.plan.plan_on_model`,
     the planning half of `cvxnav plan`), the smoothed curve verified or no path.
@@ -61,10 +70,8 @@ def plan_cvxnav(problem: BenchProblem) -> Attempt:
     """
     from cvxnav.plan import plan_on_model
     from services.planner.core import why_no_path
-    from services.planner.refine import forget_problems
 
-    EllipseStack.forget()
-    forget_problems()
+    forget_kept()
     t0 = time.perf_counter()
     plan, smoothed = plan_on_model(problem.scenario, problem.grown)
     elapsed = time.perf_counter() - t0

@@ -257,11 +257,13 @@ def test_a_map_case_is_timed_in_a_process_of_its_own_its_progress_and_failure_re
     (tmp_path / "room.json").write_text(json.dumps(doc))
     options = MapBenchOptions(repeats=1, min_timed_s=0.0)
     steps: list[str] = []
-    result = _isolated(bench_case, MapCase(tmp_path / "room.json", "a room"), options, False, on_step=steps.append)
+    result = _isolated(bench_case, MapCase(tmp_path / "room.json", "a room"), options, with_ompl=False,
+                       on_step=steps.append)
     assert steps[0] == "room: cold calls" and "room: in turns, round 1" in steps
     rows = {row.planner: row for row in result.planners}
     assert set(rows) == {"cvxnav", "grid (NavFn-like)"} and all(row.success for row in rows.values())
     assert rows["cvxnav"].length_m == pytest.approx(4.0, abs=1e-3)  # straight along the heading
 
     with pytest.raises(RuntimeError, match=r"(?s)failed in its process.*ScenarioError.*missing\.json"):
-        _isolated(bench_case, MapCase(tmp_path / "missing.json", "none"), options, False, on_step=steps.append)
+        _isolated(bench_case, MapCase(tmp_path / "missing.json", "none"), options, with_ompl=False,
+                  on_step=steps.append)
