@@ -215,8 +215,12 @@ class EllipseStack:
         ellipse.
         """
         p = np.atleast_2d(np.asarray(starts, dtype=float))
-        d = np.atleast_2d(np.asarray(ends, dtype=float)) - p
-        columns = [c[:, None, :] for c in self._columns]
+        return self._segment_levels_among(p, np.atleast_2d(np.asarray(ends, dtype=float)), slice(None))
+
+    def _segment_levels_among(self, p: FloatArray, q: FloatArray, among: slice | np.ndarray) -> FloatArray:
+        """`segment_levels` against the ellipses `among` alone: (n_segments, len(among))."""
+        columns = [c[:, None, among] for c in self._columns]
+        d = q - p
         return _segment_minimum(
             _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
         )
@@ -234,18 +238,10 @@ class EllipseStack:
         if len(self) == 0 or len(p) == 0:
             return np.ones(len(p), dtype=bool)
         lo, hi = np.minimum(p.min(axis=0), q.min(axis=0)), np.maximum(p.max(axis=0), q.max(axis=0))
-        c = self.centers
-        out = np.maximum(np.maximum(lo - c, c - hi), 0.0)  # each centre's offset from the box
-        bound = level * self.reach * (1.0 + 1e-9)  # above the reach's rounding
-        near = np.flatnonzero(out[:, 0] * out[:, 0] + out[:, 1] * out[:, 1] <= bound * bound)
+        near = _discs_meeting_box(self.centers, level * self.reach * (1.0 + 1e-9), lo, hi)  # 1e-9: the reach's rounding
         if not len(near):
             return np.ones(len(p), dtype=bool)
-        columns = [col[:, None, near] for col in self._columns]
-        d = q - p
-        levels = _segment_minimum(
-            _affine(columns, p[:, 0, None], p[:, 1, None]), _affine(columns, d[:, 0, None], d[:, 1, None], shift=False)
-        )
-        return levels.min(axis=1) >= level
+        return self._segment_levels_among(p, q, near).min(axis=1) >= level
 
     def polyline_level(self, points: ArrayLike) -> float:
         """min over a short polyline's segments and every ellipse of the `segment_levels` level (+inf
@@ -398,8 +394,7 @@ class EllipseStack:
             k = order[lo : lo + _SWEEP_BLOCK]
             a, d = p[k], q[k] - p[k]
             low, high = np.minimum(a, q[k]).min(axis=0), np.maximum(a, q[k]).max(axis=0)
-            out = np.maximum(np.maximum(low - c, c - high), 0.0)  # each centre's offset from the box
-            near = np.flatnonzero(out[:, 0] * out[:, 0] + out[:, 1] * out[:, 1] <= reach * reach)
+            near = _discs_meeting_box(c, reach, low, high)
             ex, ey = c[None, near, 0] - a[:, 0, None], c[None, near, 1] - a[:, 1, None]
             dd = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
             t = np.clip((ex * d[:, 0, None] + ey * d[:, 1, None]) / np.where(dd > 0.0, dd, 1.0)[:, None], 0.0, 1.0)
@@ -443,6 +438,12 @@ def _stack_of(ellipses: tuple[Ellipse, ...]) -> EllipseStack:
     # stack is shared.
     rows = np.frombuffer(b"".join([e._row for e in ellipses])).reshape(-1, 6) if ellipses else _frozen(np.zeros((0, 6)))
     return EllipseStack(A=rows[:, :4].reshape(-1, 2, 2), b=rows[:, 4:])
+
+
+def _discs_meeting_box(centers: FloatArray, radii: FloatArray, low: FloatArray, high: FloatArray) -> np.ndarray:
+    """Indices of the discs (centres, radii) that meet the axis-aligned box low … high."""
+    out = np.maximum(np.maximum(low - centers, centers - high), 0.0)  # each centre's offset from the box
+    return np.flatnonzero(out[:, 0] * out[:, 0] + out[:, 1] * out[:, 1] <= radii * radii)
 
 
 def _affine(columns: list[FloatArray], x: FloatArray, y: FloatArray, *, shift: bool = True) -> FloatArray:
