@@ -362,7 +362,8 @@ class _ClarabelPathProblem:
         return x[: 2 * n].reshape(n, 2), x[2 * n : 3 * n - 2], elastic
 
     def _rebuild_pins(self, pinned: np.ndarray) -> None:
-        """Point the pinned rows at the pinned points' columns and set the solver up afresh."""
+        """Point the pinned rows at the pinned points' columns, assemble the matrix (the first solve always
+        does: no column is pinned before it) and set the solver up afresh."""
         r, c = self._entries
         idx = self._entry_slice(self.pin_rows)
         local = r[idx] - self.pin_rows.start  # 2k for x of the k-th pinned point, 2k + 1 for y
